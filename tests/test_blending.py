@@ -1,0 +1,405 @@
+"""Tests for nerfuser_ns.blending (pure tensor math, CPU, tiny tensors)."""
+
+import time
+
+import pytest
+import torch
+
+from nerfuser_ns.blending import (
+    BLEND_METHODS,
+    MergedSamples,
+    apply_distance_test,
+    camera_to_origin_distances,
+    distance_ratio,
+    distance_test,
+    idw_2d,
+    idw_3d,
+    idw_3d_weights,
+    idw_sample_blend,
+    idw_weights,
+    image_blend_weights,
+    merge_samples,
+    merged_sample_distances,
+    nearest_blend,
+    nearest_index,
+    render_samples,
+)
+
+GAMMAS = [0.01, 1.0, 100.0, 1e4]
+
+
+def random_nerf_samples(n, r, k, contiguous=True, seed=0, dtype=torch.float64):
+    """Sorted samples per NeRF per ray (contiguous bins or with gaps) with p summing to < 1."""
+    g = torch.Generator().manual_seed(seed)
+    if contiguous:
+        t = torch.sort(torch.rand(n, r, k + 1, generator=g, dtype=dtype) * 5 + 0.1, dim=-1).values
+        starts, ends = t[..., :-1], t[..., 1:]
+    else:
+        t = torch.sort(torch.rand(n, r, 2 * k, generator=g, dtype=dtype) * 5 + 0.1, dim=-1).values
+        starts, ends = t[..., 0::2], t[..., 1::2]
+    p = torch.rand(n, r, k, generator=g, dtype=dtype)
+    p = p / p.sum(-1, keepdim=True) * torch.rand(n, r, 1, generator=g, dtype=dtype)
+    rgbs = torch.rand(n, r, k, 3, generator=g, dtype=dtype)
+    bg = torch.rand(n, r, 3, generator=g, dtype=dtype)
+    return starts, ends, p, rgbs, bg
+
+
+def rays(r, seed=1, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    o = torch.randn(r, 3, generator=g, dtype=dtype)
+    d = torch.nn.functional.normalize(torch.randn(r, 3, generator=g, dtype=dtype), dim=-1)
+    return o, d
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# merge_samples
+
+
+@pytest.mark.parametrize("contiguous", [True, False])
+def test_merge_conserves_mass_and_sorts(contiguous):
+    starts, ends, p, rgbs, _ = random_nerf_samples(3, 7, 5, contiguous=contiguous)
+    merged = merge_samples(starts, ends, p, rgbs)
+    m = merged.starts.shape[-1]
+    assert m == (3 * 6 - 1 if contiguous else 2 * 3 * 5 - 1)
+    assert merged.weights.shape == (3, 7, m) and merged.rgbs.shape == (3, 7, m, 3)
+    torch.testing.assert_close(merged.weights.sum(-1), p.sum(-1), rtol=1e-12, atol=1e-12)
+    assert torch.all(merged.deltas >= 0)
+    assert torch.equal(merged.ends[..., :-1], merged.starts[..., 1:])
+    assert torch.all(merged.weights >= 0)
+    # Each NeRF's rendering (without background) is preserved: colour is constant within a source sample.
+    torch.testing.assert_close(render_samples(merged.weights, merged.rgbs), render_samples(p, rgbs))
+
+
+def test_merge_mass_density_is_uniform_within_source_sample():
+    # One NeRF with a single sample [0, 4] of mass 0.8, another splitting it at 1 and 3: 0.2, 0.4, 0.2.
+    starts = torch.tensor([[[0.0, 4.0]], [[1.0, 3.0]]])
+    ends = torch.tensor([[[4.0, 5.0]], [[3.0, 3.5]]])
+    p = torch.tensor([[[0.8, 0.1]], [[0.5, 0.5]]])
+    rgbs = torch.rand(2, 1, 2, 3)
+    merged = merge_samples(starts, ends, p, rgbs, contiguous=False)
+    # Boundaries: 0, 1, 3, 3, 3.5, 4, 4, 5.
+    torch.testing.assert_close(merged.starts[0], torch.tensor([0.0, 1.0, 3.0, 3.0, 3.5, 4.0, 4.0]))
+    torch.testing.assert_close(merged.weights[0, 0], torch.tensor([0.2, 0.4, 0.0, 0.1, 0.1, 0.0, 0.1]))
+    torch.testing.assert_close(merged.weights[1, 0], torch.tensor([0.0, 0.5, 0.0, 0.5, 0.0, 0.0, 0.0]))
+    assert torch.equal(merged.rgbs[1, 0, 0], torch.zeros(3))  # uncovered by NeRF 1
+    assert torch.equal(merged.rgbs[0, 0, 1], rgbs[0, 0, 0])
+
+
+@pytest.mark.parametrize("contiguous", [True, False])
+def test_merge_single_nerf_reproduces_input(contiguous):
+    starts, ends, p, rgbs, bg = random_nerf_samples(1, 5, 6, contiguous=contiguous)
+    merged = merge_samples(starts, ends, p, rgbs)
+    nonzero = merged.deltas > 0
+    if contiguous:
+        assert torch.all(nonzero)
+        assert torch.equal(merged.starts, starts[0]) and torch.equal(merged.ends, ends[0])
+        assert torch.equal(merged.weights, p) and torch.equal(merged.rgbs, rgbs)
+    else:
+        # Intervals of positive length are exactly the samples and the gaps between them.
+        torch.testing.assert_close(merged.weights.sum(-1), p.sum(-1), rtol=1e-14, atol=0)
+    o, d = rays(5)
+    dist, bg_dist = merged_sample_distances(merged, o, d, torch.zeros(1, 3, dtype=o.dtype))
+    for gamma in GAMMAS:
+        out = idw_sample_blend(merged, dist, gamma, background_rgbs=bg, background_distances=bg_dist)
+        torch.testing.assert_close(out.rgb, render_samples(p[0], rgbs[0], bg[0]), rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(out.nerf_share, torch.ones(1, 5, dtype=p.dtype))
+
+
+@pytest.mark.parametrize("gamma", GAMMAS)
+@pytest.mark.parametrize("contiguous", [True, False])
+def test_two_identical_nerfs_blend_to_the_single_render(gamma, contiguous):
+    starts, ends, p, rgbs, bg = random_nerf_samples(1, 6, 8, contiguous=contiguous)
+    dup = [torch.cat([x, x]) for x in (starts, ends, p, rgbs, bg)]
+    merged = merge_samples(*dup[:4])
+    o, d = rays(6)
+    origins = torch.tensor([[0.0, 0.0, 0.0], [1.0, 2.0, -1.0]], dtype=o.dtype)
+    dist, bg_dist = merged_sample_distances(merged, o, d, origins)
+    out = idw_sample_blend(merged, dist, gamma, background_rgbs=dup[4], background_distances=bg_dist)
+    expected = render_samples(p[0], rgbs[0], bg[0])
+    torch.testing.assert_close(out.rgb, expected, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(out.accumulation, p[0].sum(-1), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(out.nerf_share.sum(0), torch.ones(6, dtype=p.dtype))
+
+
+def test_merge_zero_length_intervals_no_nan():
+    # Duplicated boundaries across and within NeRFs, zero-length source samples (with and without mass).
+    starts = torch.tensor([[[1.0, 2.0, 2.0, 3.0]], [[1.0, 2.0, 2.0, 2.0]]])
+    ends = torch.tensor([[[2.0, 2.0, 3.0, 4.0]], [[2.0, 2.0, 2.0, 4.0]]])
+    p = torch.tensor([[[0.2, 0.0, 0.3, 0.1]], [[0.1, 0.2, 0.3, 0.4]]])
+    rgbs = torch.rand(2, 1, 4, 3)
+    for contiguous in (None, False):
+        merged = merge_samples(starts, ends, p, rgbs, contiguous=contiguous)
+        for x in (merged.weights, merged.rgbs):
+            assert torch.isfinite(x).all()
+        torch.testing.assert_close(merged.weights.sum(-1), p.sum(-1))
+        torch.testing.assert_close(render_samples(merged.weights, merged.rgbs), render_samples(p, rgbs))
+        dist = torch.rand(2, 1, merged.starts.shape[-1]) + 0.5
+        for gamma in (1e-8, 1.0, 1e8):
+            out = idw_sample_blend(merged, dist, gamma, background_rgbs=torch.rand(2, 1, 3))
+            for x in (out.rgb, out.depth, out.accumulation, out.nerf_share):
+                assert torch.isfinite(x).all()
+
+
+def test_merge_all_rays_degenerate():
+    # Every sample at the same point (e.g. a ray clipped to nothing): no NaN, zero mass stays zero.
+    z = torch.zeros(2, 3, 4)
+    merged = merge_samples(z, z, z, torch.rand(2, 3, 4, 3))
+    out = idw_sample_blend(merged, torch.ones(2, 3, merged.starts.shape[-1]), 5.0, background_rgbs=torch.ones(2, 3, 3))
+    assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
+    torch.testing.assert_close(out.rgb, torch.ones(3, 3))  # all background
+    out = idw_sample_blend(merged, torch.ones(2, 3, merged.starts.shape[-1]), 5.0)  # no background, no mass
+    assert torch.isfinite(out.rgb).all()
+    assert torch.equal(out.rgb, torch.zeros(3, 3))
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# IDW weights
+
+
+def test_idw_weights_basic_and_limits():
+    d = torch.tensor([[1.0, 2.0, 0.5], [2.0, 2.0, 4.0], [4.0, 1.0, 4.0]])
+    w = idw_weights(d, 1.0)
+    torch.testing.assert_close(w.sum(0), torch.ones(3))
+    torch.testing.assert_close(w[:, 0], torch.tensor([1.0, 0.5, 0.25]) / 1.75)
+    torch.testing.assert_close(idw_weights(d, 2.0)[:, 0], torch.tensor([1.0, 0.25, 0.0625]) / 1.3125)
+    torch.testing.assert_close(idw_weights(d, 1e-8), torch.full_like(d, 1 / 3))
+    torch.testing.assert_close(idw_weights(d, 0.0), torch.full_like(d, 1 / 3))
+    torch.testing.assert_close(idw_weights(d, 1e6)[:, 0], torch.tensor([1.0, 0.0, 0.0]))
+    torch.testing.assert_close(idw_weights(d, 1e6)[:, 2], torch.tensor([1.0, 0.0, 0.0]))
+    torch.testing.assert_close(idw_weights(d, float("inf"))[:, 1], torch.tensor([0.0, 0.0, 1.0]))
+    # Exact ties at huge gamma share.
+    torch.testing.assert_close(idw_weights(torch.tensor([2.0, 2.0, 3.0]), 1e8), torch.tensor([0.5, 0.5, 0.0]))
+    for gamma in (1e-8, 1e8, 1e30, float("inf")):
+        w = idw_weights(torch.tensor([[1e-30, 1e30], [1e30, 1e-20]]), gamma)
+        assert torch.isfinite(w).all()
+        torch.testing.assert_close(w.sum(0), torch.ones(2))
+    with pytest.raises(ValueError):
+        idw_weights(d, -1.0)
+
+
+def test_idw_weights_zero_distance():
+    d = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 2.0]])
+    for gamma in (1e-8, 1.0, 1e8):
+        w = idw_weights(d, gamma)
+        assert torch.isfinite(w).all()
+        torch.testing.assert_close(w[:, 0], torch.tensor([1.0, 0.0]))
+        torch.testing.assert_close(w[:, 1], torch.tensor([0.5, 0.5]))
+
+
+def _two_nerf_scene(r=5, k=6, seed=3):
+    starts, ends, p, rgbs, bg = random_nerf_samples(2, r, k, seed=seed)
+    merged = merge_samples(starts, ends, p, rgbs)
+    o, d = rays(r, seed=seed)
+    origins = torch.tensor([[0.0, 0.0, 0.0], [2.0, 0.5, -1.0]], dtype=o.dtype)
+    dist, bg_dist = merged_sample_distances(merged, o, d, origins)
+    return merged, dist, bg_dist, bg
+
+
+def test_idw_sample_gamma_zero_is_per_sample_mean():
+    merged, dist, bg_dist, bg = _two_nerf_scene()
+    out = idw_sample_blend(merged, dist, 1e-9, background_rgbs=bg, background_distances=bg_dist)
+    p = torch.cat([merged.weights, (1 - merged.weights.sum(-1, keepdim=True))], -1)
+    c = torch.cat([merged.rgbs, bg.unsqueeze(-2)], -2)
+    q = p.mean(0)
+    expected = (p.unsqueeze(-1) * c).mean(0).sum(-2) / q.sum(-1, keepdim=True)
+    torch.testing.assert_close(out.rgb, expected)
+    torch.testing.assert_close(out.weights.sum(-1) + out.background_weight, torch.ones(5, dtype=p.dtype))
+
+
+def test_idw_sample_gamma_inf_is_per_sample_nearest():
+    merged, dist, bg_dist, bg = _two_nerf_scene()
+    p = torch.cat([merged.weights, (1 - merged.weights.sum(-1, keepdim=True))], -1)
+    c = torch.cat([merged.rgbs, bg.unsqueeze(-2)], -2)
+    d = torch.cat([dist, bg_dist.unsqueeze(-1)], -1)
+    one_hot = (d == d.min(0, keepdim=True).values).to(p.dtype)  # KiloNeRF-like: one NeRF per sample
+    q = one_hot * p
+    expected = (q.unsqueeze(-1) * c).sum((0, -2)) / q.sum((0, -1)).unsqueeze(-1)
+    for gamma in (1e6, float("inf")):
+        out = idw_sample_blend(merged, dist, gamma, background_rgbs=bg, background_distances=bg_dist)
+        torch.testing.assert_close(out.rgb, expected)
+        torch.testing.assert_close(out.nerf_share.sum(0), torch.ones(5, dtype=p.dtype))
+
+
+@pytest.mark.parametrize("gamma", [1e-8, 0.01, 1.0, 5.0, 1e4, 1e8])
+def test_idw_sample_normalisation_and_no_nan(gamma):
+    merged, dist, bg_dist, bg = _two_nerf_scene()
+    out = idw_sample_blend(merged, dist, gamma, background_rgbs=bg, background_distances=bg_dist)
+    for x in (out.rgb, out.depth, out.accumulation, out.weights, out.background_weight, out.nerf_share):
+        assert torch.isfinite(x).all()
+    ones = torch.ones(5, dtype=dist.dtype)
+    torch.testing.assert_close(out.weights.sum(-1) + out.background_weight, ones)  # normalisation (2)
+    torch.testing.assert_close(out.accumulation, out.weights.sum(-1))
+    torch.testing.assert_close(out.nerf_share.sum(0), ones)
+    assert torch.all(out.rgb >= 0) and torch.all(out.rgb <= 1 + 1e-9)
+    # Without background: the paper's formula, samples alone normalised to 1.
+    out = idw_sample_blend(merged, dist, gamma)
+    torch.testing.assert_close(out.weights.sum(-1), ones)
+    assert torch.isfinite(out.rgb).all()
+
+
+def test_idw_sample_vanished_mass_falls_back_to_mean():
+    # NeRF 0 is nearest everywhere but empty, and there is no background term: at huge gamma every weighted mass
+    # underflows to 0 -> plain mean over NeRFs instead of NaN.
+    starts = torch.tensor([[[1.0, 2.0]], [[1.0, 2.0]]])
+    ends = torch.tensor([[[2.0, 3.0]], [[2.0, 3.0]]])
+    p = torch.tensor([[[0.0, 0.0]], [[0.5, 0.5]]])
+    rgbs = torch.tensor([[[[1.0, 0, 0], [1.0, 0, 0]]], [[[0, 1.0, 0], [0, 0, 1.0]]]])
+    merged = merge_samples(starts, ends, p, rgbs)
+    m = merged.starts.shape[-1]
+    dist = torch.stack([torch.ones(1, m), torch.full((1, m), 10.0)])
+    out = idw_sample_blend(merged, dist, 1e8)
+    torch.testing.assert_close(out.rgb, torch.tensor([[0.0, 0.5, 0.5]]))
+    torch.testing.assert_close(out.nerf_share, torch.tensor([[0.0], [1.0]]))
+
+
+def test_idw_sample_hand_computed():
+    """1 ray, 2 NeRFs, gamma = 1; numbers derived by hand.
+
+    A: [1,2] p=.5 red, [2,3] p=.25 green, background .25 grey.  B: [1.5,2.5] p=.4 blue, [2.5,3] p=.6 white.
+    Merged: [1,1.5] [1.5,2] [2,2.5] [2.5,3] [3,3]; A mass .25 .25 .125 .125 0; B mass 0 .2 .2 .6 0.
+    Distances (A, B): (1,3) (1,1) (1,1) (3,1) (1,1), background (3,1) -> w_A .75 .5 .5 .25 .5, .25.
+    q_A = .1875 .125 .0625 .03125 0 | bg .0625; q_B = 0 .1 .1 .45 0 | 0; total 1.11875.
+    """
+    starts = torch.tensor([[[1.0, 2.0]], [[1.5, 2.5]]])
+    ends = torch.tensor([[[2.0, 3.0]], [[2.5, 3.0]]])
+    p = torch.tensor([[[0.5, 0.25]], [[0.4, 0.6]]])
+    red, green, blue, white = torch.eye(3)[0], torch.eye(3)[1], torch.eye(3)[2], torch.ones(3)
+    rgbs = torch.stack([torch.stack([red, green]), torch.stack([blue, white])]).unsqueeze(1)
+    bg = torch.tensor([[[0.5, 0.5, 0.5]], [[1.0, 1.0, 0.0]]])
+    merged = merge_samples(starts, ends, p, rgbs)
+    torch.testing.assert_close(merged.starts, torch.tensor([[1.0, 1.5, 2.0, 2.5, 3.0]]))
+    torch.testing.assert_close(merged.ends, torch.tensor([[1.5, 2.0, 2.5, 3.0, 3.0]]))
+    torch.testing.assert_close(
+        merged.weights, torch.tensor([[[0.25, 0.25, 0.125, 0.125, 0.0]], [[0, 0.2, 0.2, 0.6, 0]]])
+    )
+    dist = torch.tensor([[[1.0, 1.0, 1.0, 3.0, 1.0]], [[3.0, 1.0, 1.0, 1.0, 1.0]]])
+    bg_dist = torch.tensor([[3.0], [1.0]])
+    out = idw_sample_blend(merged, dist, 1.0, background_rgbs=bg, background_distances=bg_dist)
+    z = 1.11875
+    torch.testing.assert_close(out.rgb, torch.tensor([[0.79375, 0.575, 0.68125]]) / z)
+    torch.testing.assert_close(out.nerf_share, torch.tensor([[0.46875], [0.65]]) / z)
+    torch.testing.assert_close(out.weights, torch.tensor([[0.1875, 0.225, 0.1625, 0.48125, 0.0]]) / z)
+    torch.testing.assert_close(out.background_weight, torch.tensor([0.0625 / z]))
+    torch.testing.assert_close(out.accumulation, torch.tensor([1.05625 / z]))
+    torch.testing.assert_close(out.depth, torch.tensor([2.3171875 / 1.05625]))
+
+
+def test_idw_sample_distance_test_override_gives_nearest_render():
+    merged, dist, bg_dist, bg = _two_nerf_scene(r=4)
+    _, _, p, rgbs, bg = random_nerf_samples(2, 4, 6, seed=3)
+    cam_d = torch.tensor([[1.0, 1.0, 1.0, 3.0], [3.0, 1.5, 1.0, 1.0]], dtype=dist.dtype)  # ratios 3, 1.5, 1, 3
+    out = idw_sample_blend(
+        merged, dist, 2.0, background_rgbs=bg, background_distances=bg_dist, camera_distances=cam_d, tau=2.0
+    )
+    torch.testing.assert_close(out.rgb[0], render_samples(p[0, 0], rgbs[0, 0], bg[0, 0]))
+    torch.testing.assert_close(out.rgb[3], render_samples(p[1, 3], rgbs[1, 3], bg[1, 3]))
+    torch.testing.assert_close(out.nerf_share[:, [0, 3]], torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=dist.dtype))
+    plain = idw_sample_blend(merged, dist, 2.0, background_rgbs=bg, background_distances=bg_dist)
+    torch.testing.assert_close(out.rgb[1:3], plain.rgb[1:3])
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Baselines
+
+
+def test_distance_test_switches_at_tau():
+    d = torch.tensor([[1.0, 1.0, 2.0, 1.0, 0.0, 0.0], [1.79, 1.81, 1.0, 1.0, 1.0, 0.0]])
+    torch.testing.assert_close(distance_ratio(d)[:4], torch.tensor([1.79, 1.81, 2.0, 1.0]))
+    assert distance_test(d, 1.8).tolist() == [False, True, True, False, True, False]
+    # N = 3: second-nearest over nearest, whichever NeRFs they are.
+    d3 = torch.tensor([[5.0, 1.0], [2.0, 3.0], [1.0, 1.5]])
+    torch.testing.assert_close(distance_ratio(d3), torch.tensor([2.0, 1.5]))
+    assert distance_test(d3, 1.8).tolist() == [True, False]
+    assert distance_test(torch.tensor([[2.0]]), 1.8).tolist() == [True]
+    assert distance_test(torch.tensor([[1.0], [2.0]]), 2.0).tolist() == [
+        False
+    ]  # strictly greater than tau  # one NeRF: always nearest only
+
+
+def test_nearest_and_idw_2d():
+    rgbs = torch.rand(3, 4, 5, 3)
+    d = torch.tensor([2.0, 0.5, 1.0])
+    assert nearest_index(d).item() == 1
+    torch.testing.assert_close(nearest_blend(rgbs, d), rgbs[1])
+    torch.testing.assert_close(idw_2d(rgbs, torch.tensor([1.5, 1.5, 1.5]), 5.0), rgbs.mean(0))
+    w = torch.tensor([0.5, 2.0, 1.0])
+    torch.testing.assert_close(idw_2d(rgbs, d, 1.0), (w[:, None, None, None] * rgbs).sum(0) / 3.5)
+    # Distance test: ratio 2 > 1.8 -> nearest only; < tau -> IDW.
+    torch.testing.assert_close(idw_2d(rgbs, d, 1.0, tau=1.8), rgbs[1])
+    torch.testing.assert_close(idw_2d(rgbs, d, 1.0, tau=2.5), idw_2d(rgbs, d, 1.0))
+    # Per-camera distances over a batch of images.
+    d_cam = torch.tensor([[2.0, 1.0], [1.0, 1.0], [4.0, 1.0]])
+    rgbs_b = torch.rand(3, 2, 4, 5, 3)
+    out = idw_2d(rgbs_b, d_cam, 1.0, tau=1.8)
+    torch.testing.assert_close(out[0], rgbs_b[1, 0])
+    torch.testing.assert_close(out[1], rgbs_b[:, 1].mean(0))
+
+
+def test_idw_3d():
+    r = 4
+    rgbs = torch.rand(2, r, 3)
+    o = torch.zeros(r, 3)
+    d = torch.tensor([[0.0, 0.0, 1.0]]).expand(r, 3)
+    origins = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 4.0]])
+    depths = torch.tensor([[2.0, 1.0, 3.0, 1.5], [2.0, 6.0, 3.0, 4.0]])  # surface distances A: 1,0,2,.5 B: 2,2,1,0
+    w = idw_3d_weights(depths, o, d, origins, 1.0)
+    torch.testing.assert_close(w[:, 0], torch.tensor([2 / 3, 1 / 3]))
+    torch.testing.assert_close(w[:, 1], torch.tensor([1.0, 0.0]))
+    torch.testing.assert_close(w[:, 2], torch.tensor([1 / 3, 2 / 3]))
+    torch.testing.assert_close(w[:, 3], torch.tensor([0.0, 1.0]))
+    torch.testing.assert_close(idw_3d(rgbs, depths, o, d, origins, 1.0), (w.unsqueeze(-1) * rgbs).sum(0))
+    # Camera at z=0 is 1 from A and 4 from B: distance test forces A everywhere.
+    cam_d = camera_to_origin_distances(torch.zeros(3), origins)
+    torch.testing.assert_close(cam_d, torch.tensor([1.0, 4.0]))
+    torch.testing.assert_close(idw_3d(rgbs, depths, o, d, origins, 1.0, cam_d, tau=1.8), rgbs[0])
+
+
+def test_image_blend_weights_and_methods():
+    assert BLEND_METHODS == ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
+    d = torch.tensor([2.0, 1.0])
+    torch.testing.assert_close(image_blend_weights("nerf", d, 1.0, reference=0), torch.tensor([1.0, 0.0]))
+    torch.testing.assert_close(image_blend_weights("nearest", d, 1.0), torch.tensor([0.0, 1.0]))
+    torch.testing.assert_close(image_blend_weights("idw-2d", d, 1.0), torch.tensor([1 / 3, 2 / 3]))
+    torch.testing.assert_close(image_blend_weights("idw-2d", d, 1.0, tau=1.5), torch.tensor([0.0, 1.0]))
+    sd = torch.tensor([[1.0, 3.0], [1.0, 1.0]])
+    torch.testing.assert_close(
+        image_blend_weights("idw-3d", d, 1.0, surface_distances=sd)[:, 1], torch.tensor([0.25, 0.75])
+    )
+    with pytest.raises(ValueError):
+        image_blend_weights("idw-sample", d, 1.0)
+    w = apply_distance_test(torch.full((2, 3), 0.5), torch.tensor([[1.0, 1.0, 3.0], [1.0, 3.0, 1.0]]), 2.0)
+    torch.testing.assert_close(w, torch.tensor([[0.5, 1.0, 0.0], [0.5, 0.0, 1.0]]))
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Vectorisation
+
+
+def test_vectorised_speed():
+    n, r, k = 2, 4096, 48
+    starts, ends, p, rgbs, bg = random_nerf_samples(n, r, k, dtype=torch.float32)
+    o, d = rays(r, dtype=torch.float32)
+    origins = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+
+    def run():
+        merged = merge_samples(starts, ends, p, rgbs)
+        dist, bg_dist = merged_sample_distances(merged, o, d, origins)
+        return idw_sample_blend(merged, dist, 5.0, background_rgbs=bg, background_distances=bg_dist)
+
+    run()  # warm-up (allocator, lazy init)
+    t0 = time.perf_counter()
+    out = run()
+    elapsed = time.perf_counter() - t0
+    assert out.rgb.shape == (r, 3) and torch.isfinite(out.rgb).all()
+    assert elapsed < 1.0, f"merge + blend of {r} rays took {elapsed:.3f} s"
+
+
+def test_merged_samples_dataclass():
+    ms = MergedSamples(
+        starts=torch.tensor([[0.0, 1.0]]),
+        ends=torch.tensor([[1.0, 3.0]]),
+        weights=torch.zeros(1, 1, 2),
+        rgbs=torch.zeros(1, 1, 2, 3),
+    )
+    torch.testing.assert_close(ms.midpoints, torch.tensor([[0.5, 2.0]]))
+    torch.testing.assert_close(ms.deltas, torch.tensor([[1.0, 2.0]]))
