@@ -1,0 +1,288 @@
+"""Load any trained nerfstudio run from its ``config.yml`` and render it from arbitrary camera poses.
+
+The run is rebuilt from its OWN saved config (never a default one: nerfstudio 1.x's ``average_init_density``
+alone makes densities 100x off otherwise) and its latest (or chosen) checkpoint. By default only the model is
+built, so the dataset folder need not exist: the scene box and the number of training images are read back from
+the checkpoint. ``with_data=True`` builds the whole pipeline (datamanager included) for users who need the
+training cameras; then the dataset must be where config.yml says, or at ``data_override``.
+
+Frames: a run's "NeRF frame" is the normalised frame nerfstudio trains in. ``dataparser_transforms.json`` beside
+config.yml maps the dataset's own frame into it; :attr:`LoadedRun.data_to_nerf` is that map as a 4x4 SIM(3)
+(``[[s R, s t], [0, 1]]``, points as columns).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+import yaml
+from jaxtyping import Float
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.models.base_model import Model
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from torch import Tensor
+
+from nerfuser_ns import runtime
+
+
+class RunLoadError(ValueError):
+    """A run folder or config.yml cannot be used; the message names the file and what to do."""
+
+
+@dataclass
+class LoadedRun:
+    """A trained nerfstudio run, rebuilt from its own config.yml."""
+
+    config_path: Path
+    """The run's config.yml."""
+    config: TrainerConfig
+    """The config as saved by ``ns-train`` (output_dir patched to where the run lies now)."""
+    model: Model
+    """The model, in eval mode, on :attr:`device`."""
+    checkpoint_path: Path
+    """The checkpoint that was loaded."""
+    step: int
+    """Its training step."""
+    data_to_nerf: np.ndarray | None
+    """4x4 SIM(3) from the dataset frame to the NeRF frame (None when dataparser_transforms.json is absent)."""
+    pipeline: object | None = None
+    """The full pipeline when loaded with ``with_data=True``."""
+
+    @property
+    def name(self) -> str:
+        return f"{self.config.experiment_name}/{self.config.method_name}/{self.config_path.parent.name}"
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.device
+
+
+def read_config(config_path: Path | str) -> TrainerConfig:
+    """Read a run's config.yml, checking it is one; output_dir is re-anchored to where the run lies now."""
+    config_path = Path(config_path)
+    if not config_path.exists():
+        raise RunLoadError(f"{config_path}: no such file; pass the config.yml that ns-train wrote in the run folder")
+    if config_path.is_dir():
+        if (config_path / "config.yml").is_file():
+            config_path = config_path / "config.yml"
+        else:
+            raise RunLoadError(f"{config_path}: is a folder without config.yml; pass the run's config.yml")
+    try:
+        config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    except Exception as e:  # noqa: BLE001 - YAML or import errors are the file's fault
+        first_line = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise RunLoadError(f"{config_path}: not a readable nerfstudio config ({first_line})") from None
+    if not isinstance(config, TrainerConfig):
+        raise RunLoadError(f"{config_path}: not a nerfstudio run config (got {type(config).__name__})")
+    # config.yml lives at <output_dir>/<experiment>/<method>/<timestamp>/config.yml, saved with a relative
+    # output_dir: anchor it where the file is so the run works from any working directory.
+    config.output_dir = config_path.parent.parent.parent.parent
+    config.set_timestamp() if config.timestamp is None else None
+    config.timestamp = config_path.parent.name
+    config.load_dir = config_path.parent / config.relative_model_dir
+    return config
+
+
+def _latest_checkpoint(config_path: Path, config: TrainerConfig, step: int | None) -> tuple[Path, int]:
+    ckpt_dir = config_path.parent / config.relative_model_dir
+    ckpts = sorted(ckpt_dir.glob("step-*.ckpt")) if ckpt_dir.is_dir() else []
+    if not ckpts:
+        raise RunLoadError(
+            f"{config_path}: the run has no checkpoint in {ckpt_dir}; train it longer (checkpoints are saved "
+            "every --steps-per-save steps) or pass the config.yml of a finished run"
+        )
+    steps = {int(p.stem.split("-")[1]): p for p in ckpts}
+    if step is None:
+        step = max(steps)
+    if step not in steps:
+        raise RunLoadError(f"{config_path}: no checkpoint for step {step}; available: {sorted(steps)}")
+    return steps[step], step
+
+
+def read_dataparser_transform(config_path: Path) -> np.ndarray | None:
+    """The 4x4 SIM(3) dataset frame -> NeRF frame, from dataparser_transforms.json beside config.yml."""
+    path = config_path.parent / "dataparser_transforms.json"
+    if not path.is_file():
+        return None
+    try:
+        meta = json.loads(path.read_text())
+        transform = np.asarray(meta["transform"], dtype=np.float64)
+        scale = float(meta["scale"])
+    except Exception as e:  # noqa: BLE001
+        raise RunLoadError(f"{path}: unreadable dataparser transform ({type(e).__name__}: {e})") from None
+    if transform.shape != (3, 4) or not np.isfinite(transform).all() or not np.isfinite(scale) or scale <= 0:
+        raise RunLoadError(f"{path}: expected a finite 3x4 'transform' and a positive 'scale'")
+    out = np.eye(4)
+    out[:3, :4] = scale * transform
+    return out
+
+
+def _model_state(state: dict, config_path: Path) -> dict[str, Tensor]:
+    pipeline_state = state["pipeline"]
+    model_state = {}
+    for key, value in pipeline_state.items():
+        key = key[len("module.") :] if key.startswith("module.") else key
+        if key.startswith("_model."):
+            key = key[len("_model.") :]
+            key = key[len("module.") :] if key.startswith("module.") else key
+            model_state[key] = value
+    if not model_state:
+        raise RunLoadError(f"{config_path}: the checkpoint holds no model weights")
+    return model_state
+
+
+def _infer_model_kwargs(config: TrainerConfig, model_state: dict[str, Tensor]) -> tuple[SceneBox, int]:
+    """Scene box and number of training images, read back from the checkpoint (no dataset needed)."""
+    aabb = model_state.get("field.aabb")
+    if aabb is None:
+        # nerfstudio's dataparsers build a cube of side 2 * scene_scale around the origin.
+        scale = float(getattr(config.pipeline.datamanager.dataparser, "scene_scale", 1.0))
+        aabb = torch.tensor([[-scale] * 3, [scale] * 3], dtype=torch.float32)
+    num_train_data = 1
+    for key in ("field.embedding_appearance.embedding.weight", "camera_optimizer.pose_adjustment"):
+        if key in model_state:
+            num_train_data = int(model_state[key].shape[0])
+            break
+    return SceneBox(aabb=aabb.float().clone()), num_train_data
+
+
+def load_run(
+    config_path: Path | str,
+    device: str | torch.device = "cpu",
+    step: int | None = None,
+    with_data: bool = False,
+    data_override: Path | None = None,
+    test_mode: Literal["test", "val", "inference"] = "inference",
+    eval_num_rays_per_chunk: int | None = None,
+) -> LoadedRun:
+    """Rebuild a trained nerfstudio run from its config.yml and checkpoint.
+
+    Args:
+        config_path: the run's config.yml (or the run folder holding it).
+        device: where to put the model.
+        step: checkpoint step to load (default: the latest).
+        with_data: also build the datamanager (needs the dataset); otherwise the model alone.
+        data_override: dataset folder to use instead of the one recorded in config.yml.
+        test_mode: passed to the datamanager when ``with_data``.
+        eval_num_rays_per_chunk: rays per forward pass when rendering (default: the run's own).
+    """
+    runtime.install()
+    config_path = Path(config_path)
+    if config_path.is_dir():
+        config_path = config_path / "config.yml"
+    config = read_config(config_path)
+    if eval_num_rays_per_chunk:
+        config.pipeline.model.eval_num_rays_per_chunk = eval_num_rays_per_chunk
+    ckpt_path, ckpt_step = _latest_checkpoint(config_path, config, step)
+    try:
+        state = runtime.load_checkpoint(ckpt_path)
+    except (FileNotFoundError, ValueError) as e:
+        raise RunLoadError(str(e)) from None
+    device = torch.device(device)
+    pipeline = None
+    if with_data:
+        if data_override is not None:
+            config.pipeline.datamanager.data = Path(data_override)
+        data = config.pipeline.datamanager.data or getattr(config.pipeline.datamanager.dataparser, "data", None)
+        if data is not None and not Path(data).exists():
+            raise RunLoadError(
+                f"{config_path}: its dataset {data} is missing; pass data_override=<dataset folder> or load "
+                "without data (the model alone needs no dataset)"
+            )
+        pipeline = config.pipeline.setup(device=device, test_mode=test_mode)
+        pipeline.eval()
+        pipeline.load_pipeline(state["pipeline"], state["step"])
+        model = pipeline.model
+    else:
+        model_state = _model_state(state, config_path)
+        scene_box, num_train_data = _infer_model_kwargs(config, model_state)
+        model = config.pipeline.model.setup(
+            scene_box=scene_box, num_train_data=num_train_data, metadata={}, device=device, grad_scaler=None
+        )
+        # LPIPS weights in GPU-trained checkpoints are not model state we need (our LPIPS is lazy).
+        model_state = {k: v for k, v in model_state.items() if not k.startswith("lpips.")}
+        missing, unexpected = model.load_state_dict(model_state, strict=False)
+        if missing or unexpected:
+            raise RunLoadError(
+                f"{ckpt_path}: checkpoint does not match the model in {config_path.name} "
+                f"(missing {list(missing)[:3]}, unexpected {list(unexpected)[:3]}); was it trained with tcnn? "
+                "Re-train with --pipeline.model.implementation torch or load it on a CUDA machine with tcnn"
+            )
+        model.update_to_step(int(state["step"]))
+        model.to(device)
+        model.eval()
+    return LoadedRun(
+        config_path=config_path,
+        config=config,
+        model=model,
+        checkpoint_path=ckpt_path,
+        step=ckpt_step,
+        data_to_nerf=read_dataparser_transform(config_path),
+        pipeline=pipeline,
+    )
+
+
+def make_cameras(
+    camera_to_worlds: Float[Tensor, "num_cams 3 4"] | Float[np.ndarray, "num_cams 3 4"],
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+) -> Cameras:
+    """Pinhole cameras in nerfstudio's convention (OpenGL axes: the camera looks along -z)."""
+    c2w = torch.as_tensor(np.asarray(camera_to_worlds), dtype=torch.float32)
+    if c2w.ndim == 2:
+        c2w = c2w[None]
+    if c2w.shape[-2:] == (4, 4):
+        c2w = c2w[:, :3, :]
+    if c2w.ndim != 3 or c2w.shape[-2:] != (3, 4):
+        raise ValueError(f"camera_to_worlds must be [N, 3, 4] or [N, 4, 4], got {tuple(c2w.shape)}")
+    if width <= 0 or height <= 0 or fx <= 0 or fy <= 0:
+        raise ValueError(f"image size and focal lengths must be positive (got {width}x{height}, f={fx},{fy})")
+    n = c2w.shape[0]
+    return Cameras(
+        camera_to_worlds=c2w,
+        fx=torch.full((n, 1), float(fx)),
+        fy=torch.full((n, 1), float(fy)),
+        cx=torch.full((n, 1), float(cx)),
+        cy=torch.full((n, 1), float(cy)),
+        width=torch.full((n, 1), int(width), dtype=torch.long),
+        height=torch.full((n, 1), int(height), dtype=torch.long),
+        camera_type=CameraType.PERSPECTIVE,
+    )
+
+
+@torch.no_grad()
+def render_views(
+    model: Model,
+    cameras: Cameras,
+    outputs: tuple[str, ...] = ("rgb", "depth", "accumulation"),
+    progress: bool = True,
+    description: str = "rendering",
+) -> dict[str, Float[Tensor, "num_cams height width channels"]]:
+    """Render every camera through ``model.get_outputs_for_camera`` (chunked by the run's eval chunk size).
+
+    Returns a dict of CPU tensors ``[N, H, W, C]`` for each requested output the model produces.
+    """
+    cameras = cameras.to(model.device)
+    frames: dict[str, list[Tensor]] = {k: [] for k in outputs}
+    columns = (TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    with Progress(*columns, disable=not progress, transient=True) as bar:
+        task = bar.add_task(description, total=len(cameras))
+        for i in range(len(cameras)):
+            out = model.get_outputs_for_camera(cameras[i : i + 1])
+            for key in outputs:
+                if key not in out:
+                    raise KeyError(f"the model renders no '{key}' (it renders {sorted(out)})")
+                frames[key].append(out[key].detach().cpu())
+            bar.advance(task)
+    return {k: torch.stack(v) for k, v in frames.items()}

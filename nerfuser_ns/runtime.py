@@ -1,0 +1,194 @@
+"""Runtime fixes that let stock nerfstudio 1.1.5 train, load and render offline on a CPU.
+
+:func:`install` is idempotent and is called by every nerfuser_ns command and by the plugin's method
+configs (which nerfstudio imports when ``ns-train``/``ns-render``/``ns-eval``/``ns-viewer`` start), so
+installing the plugin is enough. It does three things:
+
+1. LPIPS becomes lazy and optional. nerfstudio models build torchmetrics' LPIPS in ``populate_modules``,
+   which downloads AlexNet weights and dies offline. The replacement builds the real metric on first use
+   only if the weights are already in the torch hub cache, and otherwise returns NaN with one warning.
+2. nerfstudio checkpoints load under torch >= 2.6 (``weights_only=True`` by default): the numpy types they
+   hold are added to torch's safe globals, so no arbitrary pickle code is allowed.
+3. The CPU fast path: the torch hash encoding, memory-bound on CPU, runs through ``torch.compile`` (inductor
+   fuses it into C++ loops: ~20x rendering, ~30x training here). CUDA inputs and tcnn keep the stock path.
+   Disable with ``NERFUSER_CPU_FAST_PATH=0`` or ``install(fast_path=False)``.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+_FAST_PATH_ENV = "NERFUSER_CPU_FAST_PATH"
+_installed = False
+_fast_path_enabled = True
+_fast_path_broken = False
+_compiled_hash_fwd: Any = None
+_lpips_warned = False
+
+# torchvision's AlexNet weights, as torchmetrics' LPIPS requests them.
+_ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
+
+
+def install(fast_path: bool | None = None) -> None:
+    """Apply the offline/CPU runtime fixes (idempotent).
+
+    Args:
+        fast_path: force the CPU fast path on or off; None reads ``NERFUSER_CPU_FAST_PATH`` (default on).
+    """
+    global _installed
+    set_fast_path(fast_path)
+    if _installed:
+        return
+    _allow_nerfstudio_checkpoints()
+    _make_lpips_lazy()
+    _patch_hash_encoding()
+    _installed = True
+
+
+def set_fast_path(enabled: bool | None) -> None:
+    """Turn the compiled CPU hash encoding on or off at run time (None: from the environment)."""
+    global _fast_path_enabled
+    if enabled is None:
+        enabled = os.environ.get(_FAST_PATH_ENV, "1").strip().lower() not in ("0", "false", "no", "off")
+    _fast_path_enabled = bool(enabled)
+
+
+def fast_path_enabled() -> bool:
+    return _fast_path_enabled and not _fast_path_broken
+
+
+# --- checkpoints ---------------------------------------------------------------------------------------------
+
+
+def _allow_nerfstudio_checkpoints() -> None:
+    """nerfstudio saves numpy scalars (e.g. in scheduler state); allow exactly those types."""
+    import numpy as np
+
+    safe: list[Any] = [np.dtype, np.ndarray]
+    try:
+        from numpy._core.multiarray import _reconstruct, scalar  # numpy >= 2
+    except ImportError:  # pragma: no cover - numpy 1.x
+        from numpy.core.multiarray import _reconstruct, scalar  # type: ignore[no-redef]
+    safe += [scalar, _reconstruct]
+    safe += [type(np.dtype(t)) for t in ("float16", "float32", "float64", "int32", "int64", "uint8", "bool")]
+    torch.serialization.add_safe_globals(safe)
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """Load a nerfstudio checkpoint on the CPU, with a one-line error naming the file when it is unusable."""
+    install()
+    try:
+        state = torch.load(path, map_location="cpu")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: checkpoint not found") from None
+    except Exception as e:  # noqa: BLE001 - any unpickling failure is the file's fault
+        raise ValueError(f"{path}: not a loadable nerfstudio checkpoint ({type(e).__name__}: {e})") from None
+    if not isinstance(state, dict) or "pipeline" not in state:
+        raise ValueError(f"{path}: not a nerfstudio checkpoint (no 'pipeline' entry)")
+    return state
+
+
+# --- LPIPS ---------------------------------------------------------------------------------------------------
+
+
+def lpips_weights_available() -> bool:
+    """True when torchmetrics' LPIPS can be built without the network (AlexNet weights cached locally)."""
+    return (Path(torch.hub.get_dir()) / "checkpoints" / _ALEXNET_WEIGHTS).is_file()
+
+
+class LazyLPIPS(nn.Module):
+    """Drop-in for torchmetrics' ``LearnedPerceptualImagePatchSimilarity`` that never touches the network.
+
+    The real metric is built on first call if its weights are cached locally; otherwise every call returns NaN
+    and one warning says LPIPS is unavailable. It holds no parameters, so checkpoints stay LPIPS-free; stock
+    nerfstudio loads them anyway (its pipeline falls back to non-strict loading for the missing LPIPS keys).
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__()
+        self._args = args
+        self._kwargs = kwargs
+        self._metric: list[nn.Module] = []  # a list keeps the real metric out of state_dict()
+        self._unavailable = False
+
+    def forward(self, preds: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        global _lpips_warned
+        if not self._metric and not self._unavailable:
+            if lpips_weights_available():
+                from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity as _Real
+
+                self._metric.append(_Real(*self._args, **self._kwargs))
+            else:
+                self._unavailable = True
+        if self._unavailable:
+            if not _lpips_warned:
+                warnings.warn(
+                    f"LPIPS unavailable: AlexNet weights are not in {Path(torch.hub.get_dir()) / 'checkpoints'} "
+                    "and nerfuser_ns never downloads; LPIPS is reported as NaN.",
+                    stacklevel=2,
+                )
+                _lpips_warned = True
+            return torch.tensor(float("nan"), device=preds.device)
+        metric = self._metric[0].to(preds.device)
+        return metric(preds, target)
+
+
+def _make_lpips_lazy() -> None:
+    import torchmetrics.image.lpip as lpip_module
+
+    # nerfstudio models import the class inside populate_modules, so replacing the module attribute suffices.
+    lpip_module.LearnedPerceptualImagePatchSimilarity = LazyLPIPS  # type: ignore[misc,assignment]
+    try:
+        import torchmetrics.image as image_module
+
+        image_module.LearnedPerceptualImagePatchSimilarity = LazyLPIPS  # type: ignore[misc,assignment]
+    except (ImportError, AttributeError):  # pragma: no cover
+        pass
+
+
+# --- CPU fast path -------------------------------------------------------------------------------------------
+
+
+def _patch_hash_encoding() -> None:
+    from nerfstudio.field_components.encodings import HashEncoding
+
+    if getattr(HashEncoding, "_nerfuser_patched", False):
+        return
+    stock_forward = HashEncoding.forward
+
+    def forward(self: HashEncoding, in_tensor: torch.Tensor) -> torch.Tensor:
+        if self.tcnn_encoding is not None or in_tensor.device.type != "cpu" or not fast_path_enabled():
+            return stock_forward(self, in_tensor)
+        return _run_compiled(self, in_tensor, stock_forward)
+
+    HashEncoding.forward = forward  # type: ignore[method-assign]
+    HashEncoding._nerfuser_patched = True  # type: ignore[attr-defined]
+    HashEncoding._nerfuser_stock_forward = stock_forward  # type: ignore[attr-defined]
+
+
+def _run_compiled(module: nn.Module, in_tensor: torch.Tensor, stock_forward: Any) -> torch.Tensor:
+    global _compiled_hash_fwd, _fast_path_broken
+    if in_tensor.shape[:-1].numel() == 0:
+        return stock_forward(module, in_tensor)
+    if _compiled_hash_fwd is None:
+        from nerfstudio.field_components.encodings import HashEncoding
+
+        # One compiled function for every instance: dynamo treats module parameters as inputs, and dynamic
+        # shapes avoid a recompile per ray-batch size.
+        _compiled_hash_fwd = torch.compile(HashEncoding.pytorch_fwd, dynamic=True)
+    try:
+        return _compiled_hash_fwd(module, in_tensor)
+    except Exception as e:  # noqa: BLE001 - no C++ compiler, unsupported platform...: fall back, once, loudly
+        _fast_path_broken = True
+        warnings.warn(
+            f"nerfuser_ns CPU fast path disabled, torch.compile failed ({type(e).__name__}: {str(e)[:200]}); "
+            f"using the stock hash encoding (set {_FAST_PATH_ENV}=0 to skip the attempt).",
+            stacklevel=2,
+        )
+        return stock_forward(module, in_tensor)

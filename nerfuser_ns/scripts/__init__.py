@@ -1,0 +1,1 @@
+"""Console commands (tyro CLIs) of nerfuser_ns."""
