@@ -52,8 +52,8 @@ def nerfacto_cpu_config(max_num_iterations: int = 3000) -> TrainerConfig:
                 num_nerf_samples_per_ray=32,
                 proposal_warmup=1000,
                 proposal_net_args_list=[
-                    {"hidden_dim": 16, "log2_hashmap_size": 15, "num_levels": 5, "max_res": 128, "use_linear": False},
-                    {"hidden_dim": 16, "log2_hashmap_size": 15, "num_levels": 5, "max_res": 256, "use_linear": False},
+                    {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 128, "use_linear": False},
+                    {"hidden_dim": 16, "log2_hashmap_size": 14, "num_levels": 5, "max_res": 256, "use_linear": False},
                 ],
                 camera_optimizer=CameraOptimizerConfig(mode="off"),
             ),

@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# Set up the environment (reused when unchanged) and run the test suite. Extra arguments go to pytest.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$(bash "$ROOT/scripts/setup_env.sh" | tail -n 1)"
+cd "$ROOT"
+set +e
+"$VENV/bin/python" -m pytest -q "$@"
+rc=$?
+set -e
+if [ "$rc" -eq 5 ]; then
+    echo "test: pytest collected no tests; that is a failure here" >&2
+    exit 1
+fi
+exit "$rc"
