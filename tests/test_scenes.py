@@ -1,0 +1,282 @@
+"""Tests for the ground-truth scene generator (nerfuser_ns.scenes): small images and few views to stay fast."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from nerfuser_ns import scenes as S
+
+SMALL = dict(num_views=6, num_test_views=3, width=48, height=36, texels_per_metre=32.0)
+
+
+@pytest.fixture(scope="module")
+def room() -> S.SceneLayout:
+    return S.make_layout("object-centric", seed=0, **SMALL)
+
+
+@pytest.fixture(scope="module")
+def room_dir(room: S.SceneLayout, tmp_path_factory) -> Path:
+    return S.write_scene(room, tmp_path_factory.mktemp("scene") / "object-centric")
+
+
+@pytest.fixture(scope="module")
+def street() -> S.SceneLayout:
+    return S.make_layout("street", seed=0, num_views=8, num_test_views=2, width=32, height=24, texels_per_metre=8.0)
+
+
+def _file_digests(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Ground truth consistency
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_capture_frame_pose_maps_to_same_render(room: S.SceneLayout):
+    """A view posed in the capture frame and mapped through capture_to_world renders exactly the world view."""
+    for cap in room.captures:
+        T = cap.capture_to_world
+        s = S.sim3_decompose(T)[0]
+        for i in (0, 3):
+            world = S.render_camera(room.scene, cap.c2w_world[i], cap.intrinsics)
+            mapped_pose = S.transform_poses(T, cap.c2w_capture[i])
+            mapped = S.render_camera(room.scene, mapped_pose, cap.intrinsics)
+            torch.testing.assert_close(mapped.rgb, world.rgb, atol=1e-5, rtol=0)
+            assert torch.equal(mapped.mask, world.mask)
+            # Depth in capture units (world / s) scaled back by s is the world depth.
+            torch.testing.assert_close((mapped.depth / s) * s, world.depth, atol=1e-9, rtol=1e-9)
+            # Same ray in the capture frame: its hit point maps to the world hit point.
+            o, d = S.camera_rays(cap.c2w_capture[i], **_intr_kwargs(cap.intrinsics))
+            p_cap = (o + (world.depth / s)[..., None, None] * d)[:, :, 0][world.mask].numpy()
+            p_world = (p_cap * s) @ S.sim3_decompose(T)[1].T + T[:3, 3]
+            o_w, d_w = S.camera_rays(cap.c2w_world[i], **_intr_kwargs(cap.intrinsics))
+            expected = (o_w + world.depth[..., None, None] * d_w)[:, :, 0][world.mask].numpy()
+            np.testing.assert_allclose(p_world, expected, atol=1e-9)
+
+
+def _intr_kwargs(k: S.Intrinsics) -> dict:
+    return dict(fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width=k.width, height=k.height)
+
+
+def test_capture_frame_normalisation(room: S.SceneLayout):
+    for cap in room.captures:
+        centres = cap.c2w_capture[:, :3, 3]
+        np.testing.assert_allclose(centres.mean(0), 0.0, atol=1e-12)
+        assert np.linalg.norm(centres, axis=-1).mean() == pytest.approx(1.0, abs=1e-12)
+        s, R, t = S.sim3_decompose(cap.capture_to_world)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(R[:, 2], [0, 0, 1], atol=1e-12)  # yaw only: +z stays up
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        # Camera rotations stay orthonormal in the capture frame.
+        Rc = cap.c2w_capture[:, :3, :3]
+        np.testing.assert_allclose(Rc @ np.swapaxes(Rc, 1, 2), np.broadcast_to(np.eye(3), Rc.shape), atol=1e-12)
+
+
+def test_sim3_helpers_roundtrip():
+    rng = np.random.default_rng(0)
+    T = S.sim3_matrix(2.5, S.yaw_rotation(0.7), rng.normal(size=3))
+    np.testing.assert_allclose(S.sim3_inverse(T) @ T, np.eye(4), atol=1e-12)
+    poses = S.look_at(rng.normal(size=(4, 3)), rng.normal(size=(4, 3)))
+    back = S.transform_poses(S.sim3_inverse(T), S.transform_poses(T, poses))
+    np.testing.assert_allclose(back, poses, atol=1e-12)
+    # The convention: rotation R_T R_c, translation s R_T t_c + t_T.
+    mapped = S.transform_poses(T, poses)
+    np.testing.assert_allclose(mapped[:, :3, :3], S.yaw_rotation(0.7) @ poses[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(mapped[:, :3, 3], (T[:3, :3] @ poses[:, :3, 3].T).T + T[:3, 3], atol=1e-12)
+
+
+def test_render_rays_matches_render(room: S.SceneLayout):
+    cap = room.test
+    out = S.render_camera(room.scene, cap.c2w_world[0], cap.intrinsics, supersample=1)
+    o, d = S.camera_rays(cap.c2w_world[0], **_intr_kwargs(cap.intrinsics))
+    hits = S.render_rays(room.scene, o[:, :, 0], 3.0 * d[:, :, 0])  # non-unit directions: depth is the ray parameter
+    torch.testing.assert_close(hits.rgb, out.rgb)
+    torch.testing.assert_close(hits.depth * 3.0, out.depth)
+    # Ray distance vs z-depth.
+    z = S.ray_to_z_depth(out.depth, cap.intrinsics)
+    cam = (o + out.depth[..., None, None] * d)[:, :, 0] - o[:, :, 0]
+    z_expected = -(cam @ torch.as_tensor(cap.c2w_world[0][:3, :3]))[..., 2]
+    torch.testing.assert_close(z, z_expected)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Dataset writer
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_dataset_roundtrip(room: S.SceneLayout, room_dir: Path):
+    gt = json.loads((room_dir / "ground_truth.json").read_text())
+    assert gt["format_version"] == S.FORMAT_VERSION and gt["layout"] == "object-centric" and gt["seed"] == 0
+    assert [c["name"] for c in gt["captures"]] == ["capture_a", "capture_b"]
+    assert gt["test"]["path"] == "test"
+    for cap_gt, cap in zip(gt["captures"], room.captures, strict=True):
+        T = np.array(cap_gt["capture_to_world"])
+        np.testing.assert_allclose(T, S.sim3_matrix(cap_gt["scale"], cap_gt["rotation"], cap_gt["translation"]),
+                                   atol=1e-11)
+        tf = json.loads((room_dir / cap_gt["path"] / "transforms.json").read_text())
+        assert tf["camera_model"] == "OPENCV" and (tf["w"], tf["h"]) == (48, 36)
+        assert tf["depth_unit_scale_factor"] == 0.001
+        poses = np.array([f["transform_matrix"] for f in tf["frames"]])
+        np.testing.assert_allclose(S.transform_poses(T, poses), cap.c2w_world, atol=1e-9)
+        for i in (0, len(tf["frames"]) - 1):
+            frame = tf["frames"][i]
+            out = S.render_camera(room.scene, cap.c2w_world[i], cap.intrinsics)
+            img = np.asarray(Image.open(room_dir / cap_gt["path"] / frame["file_path"]))
+            np.testing.assert_array_equal(img, S.to_uint8(out.rgb))
+            # Depth PNG: z-depth in capture units x 1000; times the capture scale it is the world z-depth.
+            depth = np.asarray(Image.open(room_dir / cap_gt["path"] / frame["depth_file_path"])).astype(np.float64)
+            z_world = S.ray_to_z_depth(out.depth, cap.intrinsics).numpy()
+            np.testing.assert_allclose(depth * 0.001 * cap_gt["scale"], z_world, atol=0.0006 * cap_gt["scale"])
+    # The test capture is posed in the world frame.
+    tf = json.loads((room_dir / "test" / "transforms.json").read_text())
+    np.testing.assert_allclose(np.array([f["transform_matrix"] for f in tf["frames"]]), room.test.c2w_world, atol=1e-9)
+    # The layout can be regenerated from ground_truth.json alone.
+    again = S.layout_from_ground_truth(room_dir)
+    np.testing.assert_array_equal(again.captures[1].c2w_world, room.captures[1].c2w_world)
+
+
+def test_write_is_deterministic_and_replaces_atomically(room: S.SceneLayout, room_dir: Path, tmp_path: Path):
+    other = S.write_scene(S.make_layout("object-centric", seed=0, **SMALL), tmp_path / "again")
+    assert _file_digests(other) == _file_digests(room_dir)
+    S.write_scene(room, other)  # re-run over an existing scene
+    assert _file_digests(other) == _file_digests(room_dir)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again"]  # no temporary folders left behind
+
+
+def test_write_refuses_foreign_folder(room: S.SceneLayout, tmp_path: Path):
+    (tmp_path / "precious.txt").write_text("keep me")
+    with pytest.raises(ValueError, match="refusing"):
+        S.write_scene(room, tmp_path)
+    assert (tmp_path / "precious.txt").read_text() == "keep me"
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Determinism, overlap, texture
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_seed_determinism(room: S.SceneLayout):
+    same = S.make_layout("object-centric", seed=0, **SMALL)
+    assert torch.equal(same.scene.texture_atlas, room.scene.texture_atlas)
+    for a, b in zip(same.captures + [same.test], room.captures + [room.test], strict=True):
+        np.testing.assert_array_equal(a.c2w_world, b.c2w_world)
+        np.testing.assert_array_equal(a.capture_to_world, b.capture_to_world)
+    other = S.make_layout("object-centric", seed=1, **SMALL)
+    assert not np.allclose(other.captures[0].c2w_world, room.captures[0].c2w_world)
+    assert not np.allclose(other.captures[0].capture_to_world, room.captures[0].capture_to_world)
+
+
+def test_object_centric_captures_overlap():
+    lay = S.make_layout("object-centric", seed=0, num_views=12, num_test_views=4, width=40, height=30,
+                        texels_per_metre=16.0)
+    ids = {name: lay.scene.object_index(name) for name in ("object1", "object2")}
+
+    def fraction_seeing(cap, obj):
+        seen = [(S.render_camera(lay.scene, c2w, cap.intrinsics, supersample=1).object_id == ids[obj]).float().mean()
+                for c2w in cap.c2w_world]
+        return torch.stack(seen)
+
+    a_sees_1, a_sees_2 = fraction_seeing(lay.captures[0], "object1"), fraction_seeing(lay.captures[0], "object2")
+    b_sees_1, b_sees_2 = fraction_seeing(lay.captures[1], "object1"), fraction_seeing(lay.captures[1], "object2")
+    assert (a_sees_1 > 0.05).all() and (b_sees_2 > 0.05).all()  # every view shows its own object
+    assert (a_sees_2 > 0.005).sum() >= 2 and (b_sees_1 > 0.005).sum() >= 2  # and some show the other one
+    test_sees = fraction_seeing(lay.test, "object1") + fraction_seeing(lay.test, "object2")
+    assert (test_sees > 0.01).all()
+
+
+def _surface_points(lay: S.SceneLayout, cap: S.Capture, stride: int = 4) -> np.ndarray:
+    pts = []
+    for c2w in cap.c2w_world:
+        out = S.render_camera(lay.scene, c2w, cap.intrinsics, supersample=1)
+        o, d = S.camera_rays(c2w, **_intr_kwargs(cap.intrinsics))
+        p = (o + out.depth[..., None, None] * d)[::stride, ::stride, 0][out.mask[::stride, ::stride]]
+        pts.append(p.numpy())
+    return np.concatenate(pts)
+
+
+def test_street_neighbouring_captures_overlap(street: S.SceneLayout):
+    assert len(street.captures) == 3
+    for a, b in zip(street.captures[:-1], street.captures[1:], strict=True):
+        seen = S.visibility(street.scene, _surface_points(street, a), b.c2w_world, b.intrinsics)
+        assert seen.any(dim=1).float().mean() > 0.2
+    # Test views lie between the capture centres (along the street).
+    xs = [cap.capture_to_world[0, 3] for cap in street.captures]
+    tx = street.test.c2w_world[:, 0, 3]
+    assert ((tx > min(xs)) & (tx < max(xs))).all()
+
+
+def test_visibility_detects_occlusion(room: S.SceneLayout):
+    cap = room.test
+    lo, hi = (np.asarray(v) for v in room.scene.object_bounds["object2"])
+    centre_inside = (lo + hi) / 2  # inside the sphere/pedestal: hidden from every camera
+    surface = _surface_points(room, cap, stride=8)[:5]
+    vis = S.visibility(room.scene, np.vstack([centre_inside, surface]), cap.c2w_world, cap.intrinsics)
+    assert not vis[0].any()
+    assert vis[1:].any(dim=1).all()
+
+
+def test_images_are_textured(room: S.SceneLayout, street: S.SceneLayout):
+    for lay in (room, street):
+        for cap in lay.captures + [lay.test]:
+            for c2w in cap.c2w_world[:3]:
+                out = S.render_camera(lay.scene, c2w, cap.intrinsics)
+                assert out.mask.float().mean() > 0.99  # nothing empty: the scenes are enclosed
+                grey = out.rgb.mean(-1)
+                assert grey.std() > 0.05
+                grad = (grey[1:, :-1] - grey[:-1, :-1]).abs() + (grey[:-1, 1:] - grey[:-1, :-1]).abs()
+                assert grad.mean() > 0.03
+                assert (grad > 0.02).float().mean() > 0.3  # texture everywhere, not only at a few edges
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Bad input
+# --------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(layout="nowhere"), "unknown layout"),
+        (dict(width=-4), "width"),
+        (dict(height=0), "height"),
+        (dict(num_views=0), "num_views"),
+        (dict(seed=-1), "seed"),
+        (dict(hfov_deg=500.0), "hfov"),
+        (dict(layout="street", num_captures=1), "num_captures"),
+        (dict(colour="red"), "unknown layout parameters"),
+    ],
+)
+def test_bad_layout_arguments(kwargs, match):
+    kwargs = dict(kwargs)
+    with pytest.raises(ValueError, match=match):
+        S.make_layout(kwargs.pop("layout", "object-centric"), **kwargs)
+
+
+def test_bad_render_arguments(room: S.SceneLayout):
+    k = room.test.intrinsics
+    with pytest.raises(ValueError, match="c2w"):
+        S.render(room.scene, np.eye(3), k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+    with pytest.raises(ValueError, match="width"):
+        S.render(room.scene, np.eye(4), k.fx, k.fy, k.cx, k.cy, 0, k.height)
+    with pytest.raises(ValueError, match="supersample"):
+        S.render(room.scene, np.eye(4), k.fx, k.fy, k.cx, k.cy, k.width, k.height, supersample=0)
+
+
+def test_script_reports_bad_values(tmp_path: Path):
+    script = Path(__file__).resolve().parents[1] / "scripts" / "make_scene.py"
+    res = subprocess.run([sys.executable, str(script), "--width", "-5", "--output-dir", str(tmp_path / "x")],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2
+    assert "width must be an integer" in res.stderr
+    assert not (tmp_path / "x").exists()
