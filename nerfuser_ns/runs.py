@@ -64,8 +64,8 @@ class LoadedRun:
         return self.model.device
 
 
-def read_config(config_path: Path | str) -> TrainerConfig:
-    """Read a run's config.yml, checking it is one; output_dir is re-anchored to where the run lies now."""
+def resolve_config_path(config_path: Path | str) -> Path:
+    """The run's config.yml, given it or its run folder; a one-line error naming the path otherwise."""
     config_path = Path(config_path)
     if not config_path.exists():
         raise RunLoadError(f"{config_path}: no such file; pass the config.yml that ns-train wrote in the run folder")
@@ -74,6 +74,12 @@ def read_config(config_path: Path | str) -> TrainerConfig:
             config_path = config_path / "config.yml"
         else:
             raise RunLoadError(f"{config_path}: is a folder without config.yml; pass the run's config.yml")
+    return config_path
+
+
+def read_config(config_path: Path | str) -> TrainerConfig:
+    """Read a run's config.yml, checking it is one; output_dir is re-anchored to where the run lies now."""
+    config_path = resolve_config_path(config_path)
     try:
         config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
     except Exception as e:  # noqa: BLE001 - YAML or import errors are the file's fault
@@ -84,7 +90,6 @@ def read_config(config_path: Path | str) -> TrainerConfig:
     # config.yml lives at <output_dir>/<experiment>/<method>/<timestamp>/config.yml, saved with a relative
     # output_dir: anchor it where the file is so the run works from any working directory.
     config.output_dir = config_path.parent.parent.parent.parent
-    config.set_timestamp() if config.timestamp is None else None
     config.timestamp = config_path.parent.name
     config.load_dir = config_path.parent / config.relative_model_dir
     return config
@@ -153,6 +158,28 @@ def _infer_model_kwargs(config: TrainerConfig, model_state: dict[str, Tensor]) -
     return SceneBox(aabb=aabb.float().clone()), num_train_data
 
 
+def _replay_step_state(model: Model, step: int) -> None:
+    """Restore state that training callbacks set from the step number (e.g. nerfacto's proposal-weight anneal).
+
+    nerfstudio's own loaders leave it at its initial value, which changes renders of runs shorter than the anneal
+    schedule. Callbacks that need an optimizer or trainer are skipped: they do not hold render state.
+    """
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+
+    attrs = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
+    try:
+        callbacks = model.get_training_callbacks(attrs)
+    except Exception:  # noqa: BLE001 - models whose callbacks need a live trainer have no such state
+        return
+    for callback in callbacks:
+        if TrainingCallbackLocation.BEFORE_TRAIN_ITERATION not in callback.where_to_run:
+            continue
+        try:
+            callback.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        except Exception:  # noqa: BLE001
+            continue
+
+
 def load_run(
     config_path: Path | str,
     device: str | torch.device = "cpu",
@@ -174,9 +201,7 @@ def load_run(
         eval_num_rays_per_chunk: rays per forward pass when rendering (default: the run's own).
     """
     runtime.install()
-    config_path = Path(config_path)
-    if config_path.is_dir():
-        config_path = config_path / "config.yml"
+    config_path = resolve_config_path(config_path)
     config = read_config(config_path)
     if eval_num_rays_per_chunk:
         config.pipeline.model.eval_num_rays_per_chunk = eval_num_rays_per_chunk
@@ -216,6 +241,7 @@ def load_run(
                 "Re-train with --pipeline.model.implementation torch or load it on a CUDA machine with tcnn"
             )
         model.update_to_step(int(state["step"]))
+        _replay_step_state(model, int(state["step"]))
         model.to(device)
         model.eval()
     return LoadedRun(

@@ -8,6 +8,17 @@ PYTHON="${PYTHON:-$(command -v python3.11 || command -v python3)}"
 HASH="$(cat "$ROOT/requirements.lock" "$ROOT/scripts/setup_env.sh" | sha256sum | cut -c1-12)"
 VENV="${NERFUSER_VENV:-$HOME/.cache/nerfuser_ns/venv-$HASH}"
 
+# open3d's wheel links libusb-1.0, which minimal Debian/Ubuntu images lack.
+if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; then
+    if command -v apt-get >/dev/null && [ "$(id -u)" = "0" ]; then
+        echo "setup: installing libusb-1.0-0 (needed by open3d)" >&2
+        (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) >&2
+    else
+        echo "setup: open3d needs the system library libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0)" >&2
+        exit 1
+    fi
+fi
+
 if [ ! -f "$VENV/.nerfuser-complete" ]; then
     echo "setup: creating $VENV (first run: a few minutes, ~8 GB with torch's CUDA libraries)" >&2
     rm -rf "$VENV"
