@@ -1,0 +1,50 @@
+"""Image metrics as the paper reports them: PSNR, SSIM, and LPIPS when its weights are available locally.
+
+Scores are computed per image and averaged over images (as ``ns-eval`` does). LPIPS goes through
+:class:`nerfuser_ns.runtime.LazyLPIPS`, so it is NaN, with one warning, on a machine without the AlexNet weights.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
+
+from nerfuser_ns import runtime
+
+
+def image_metrics(
+    pred: Float[Tensor, "num_images height width 3"],
+    target: Float[Tensor, "num_images height width 3"],
+    lpips: bool = True,
+) -> dict[str, float]:
+    """Mean per-image PSNR (dB), SSIM and LPIPS (NaN when unavailable) of ``pred`` against ``target`` in [0, 1]."""
+    if pred.shape != target.shape or pred.ndim != 4 or pred.shape[-1] != 3:
+        raise ValueError(
+            f"expected two [N, H, W, 3] image stacks of one shape, got {tuple(pred.shape)} and {tuple(target.shape)}"
+        )
+    pred = pred.float().clamp(0, 1).permute(0, 3, 1, 2)
+    target = target.float().clamp(0, 1).permute(0, 3, 1, 2)
+    psnr = torch.stack(
+        [peak_signal_noise_ratio(p[None], t[None], data_range=1.0) for p, t in zip(pred, target, strict=True)]
+    )
+    ssim = torch.stack(
+        [
+            structural_similarity_index_measure(p[None], t[None], data_range=1.0)
+            for p, t in zip(pred, target, strict=True)
+        ]
+    )
+    out = {"psnr": round(float(psnr.mean()), 4), "ssim": round(float(ssim.mean()), 5), "lpips": math.nan}
+    if lpips:
+        runtime.install()
+        if runtime.lpips_weights_available():
+            from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+            metric = LearnedPerceptualImagePatchSimilarity(normalize=True)
+            out["lpips"] = round(
+                float(torch.stack([metric(p[None], t[None]) for p, t in zip(pred, target, strict=True)]).mean()), 5
+            )
+    return out

@@ -1,0 +1,118 @@
+"""Build the demo scene's two NeRFs (the ones shipped in demo/runs/), from scratch, on the CPU.
+
+1. Generates the object-centric ground-truth scene (deterministic by seed) into ``--scene-dir``.
+2. Trains one ``nerfacto-cpu`` run per capture into ``--runs-dir`` (run folders as ``ns-train`` writes them).
+3. Evaluates each run on its held-out views (nerfstudio's eval split) and writes ``train_report.json``.
+4. Slims the checkpoints to what rendering needs (no optimizer state) so they can ship with the repo.
+
+Example (about 25 minutes on a 2-core CPU):
+    python scripts/build_demo.py
+The equivalent stock command for one capture is:
+    ns-train nerfacto-cpu --data demo/scene/capture_a --output-dir demo/runs --experiment-name capture_a \\
+        --timestamp demo --max-num-iterations 2000
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+
+
+@dataclass
+class BuildDemoConfig:
+    """Regenerate the demo scene and (re)train its NeRFs on the CPU."""
+
+    scene_dir: Path = Path("demo/scene")
+    """Where the generated ground-truth scene goes (not shipped: it regenerates in under a minute)."""
+    runs_dir: Path = Path("demo/runs")
+    """Where the trained runs go (shipped with the repo)."""
+    seed: int = 0
+    """Scene seed (the layout, textures and cameras)."""
+    train_seed: int = 42
+    """Training seed (--machine.seed)."""
+    max_num_iterations: int = 2000
+    """Training steps per NeRF."""
+    scene_only: bool = False
+    """Only generate the scene (used by the demo when shipped NeRFs exist)."""
+    captures: tuple[str, ...] = ("capture_a", "capture_b")
+    """Which captures to train."""
+
+
+def generate_scene(scene_dir: Path, seed: int) -> None:
+    from nerfuser_ns.scenes import make_layout, write_scene
+
+    layout = make_layout("object-centric", seed=seed, num_views=64, num_test_views=12, width=192, height=144)
+    write_scene(layout, scene_dir, supersample=2)
+
+
+def slim_checkpoint(path: Path) -> None:
+    """Keep only what loading and rendering need; written atomically."""
+    import torch
+
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    slim = {"step": state["step"], "pipeline": state["pipeline"]}
+    tmp = path.with_suffix(".tmp")
+    torch.save(slim, tmp)
+    os.replace(tmp, path)
+
+
+def main(cfg: BuildDemoConfig) -> None:
+    from rich.console import Console
+
+    console = Console()
+    t0 = time.perf_counter()
+    generate_scene(cfg.scene_dir, cfg.seed)
+    console.print(f"scene: {cfg.scene_dir} ({time.perf_counter() - t0:.1f} s)")
+    if cfg.scene_only:
+        return
+
+    import torch
+
+    from nerfuser_ns.training import train
+
+    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    report: dict = {
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__},
+        "command": "python scripts/build_demo.py",
+        "runs": {},
+    }
+    for name in cfg.captures:
+        result = train(
+            data=cfg.scene_dir / name,
+            output_dir=cfg.runs_dir,
+            experiment_name=name,
+            max_num_iterations=cfg.max_num_iterations,
+            seed=cfg.train_seed,
+            timestamp="demo",
+        )
+        metrics = result.trainer.pipeline.get_average_eval_image_metrics()
+        report["runs"][name] = {
+            "config": str(result.config_path),
+            "steps": result.step,
+            "train_seconds": round(result.train_seconds, 1),
+            "eval_psnr": round(float(metrics["psnr"]), 3),
+            "eval_ssim": round(float(metrics["ssim"]), 4),
+            "num_eval_images": len(result.trainer.pipeline.datamanager.eval_dataset),
+        }
+        console.print(f"{name}: {report['runs'][name]}")
+        for ckpt in (result.config_path.parent / "nerfstudio_models").glob("step-*.ckpt"):
+            slim_checkpoint(ckpt)
+    out = cfg.runs_dir / "train_report.json"
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(report, indent=2) + "\n")
+    os.replace(tmp, out)
+    console.print(f"report: {out}")
+
+
+def entrypoint() -> None:
+    main(tyro.cli(BuildDemoConfig))
+
+
+if __name__ == "__main__":
+    entrypoint()
