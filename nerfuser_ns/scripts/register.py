@@ -1,13 +1,179 @@
-"""``ns-nerfuser-register``: registration from re-rendering (placeholder until the registration issue lands)."""
+"""``ns-nerfuser-register``: register N >= 2 trained nerfstudio runs by re-rendering them (NeRFuser, Sec. 3.2).
+
+Example::
+
+    ns-nerfuser-register --configs outputs/a/nerfacto/run/config.yml outputs/b/nerfacto/run/config.yml \\
+        --output registration.json [--ground-truth scene/ground_truth.json --gt-captures capture_a capture_b]
+
+Writes one JSON file with every NeRF's SIM(3) into the reference NeRF's frame (the first by default), the pairwise
+transforms, the settings, diagnostics and timings. Bad inputs print one red line and exit with status 1, writing
+nothing.
+"""
 
 from __future__ import annotations
 
+import json
 import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import tyro
+from rich.console import Console
+from rich.table import Table
+from rich.text import Text
+
+from nerfuser_ns.registration import (
+    RegistrationConfig,
+    RegistrationError,
+    RegistrationFailed,
+    load_ground_truth_captures,
+    register,
+    write_registration,
+)
+
+CONSOLE = Console(width=120)
+ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
+
+
+@dataclass
+class RegisterCommand(RegistrationConfig):
+    """Register trained nerfstudio runs by re-rendering them and running one SfM over all the renders."""
+
+    configs: list[Path] = field(default_factory=list)
+    """config.yml of each run (at least 2), as ns-train wrote it."""
+    output: Path = Path("registration.json")
+    """Registration file to write (JSON, written atomically)."""
+    work_dir: Path | None = None
+    """Folder for renders and SfM files, reused by later runs with the same inputs (default: <output>_work)."""
+    device: str = "cpu"
+    """Torch device the runs render on."""
+    eval_num_rays_per_chunk: int | None = None
+    """Rays per forward pass when rendering (default: each run's own)."""
+    ground_truth: Path | None = None
+    """ground_truth.json of a generated scene, to report r/t/s errors (needs --gt-captures)."""
+    gt_captures: list[str] = field(default_factory=list)
+    """With --ground-truth: the capture each run was trained on, in --configs order."""
+    gt_transforms: list[Path] = field(default_factory=list)
+    """Instead of --ground-truth: per run, a JSON file with its NeRF-frame -> world SIM(3) (a 4x4 list, or
+    {"nerf_to_world": 4x4})."""
+
+    def main(self, renderers: list | None = None) -> dict:
+        """Register, write the file, print the summary. ``renderers`` replaces the runs of ``configs`` (tests)."""
+        from nerfuser_ns.renderers import NerfstudioRenderer
+
+        if renderers is None:
+            if len(self.configs) < 2:
+                raise RegistrationError(f"pass at least 2 runs with --configs (got {len(self.configs)})")
+            renderers = [
+                NerfstudioRenderer(c, device=self.device, eval_num_rays_per_chunk=self.eval_num_rays_per_chunk)
+                for c in self.configs
+            ]
+        gt = self._ground_truth(renderers)
+        work_dir = self.work_dir or self.output.with_name(self.output.stem + "_work")
+        config = RegistrationConfig(**{f: getattr(self, f) for f in RegistrationConfig.__dataclass_fields__})
+        try:
+            record = register(renderers, config, work_dir, gt_nerf_to_world=gt, console=CONSOLE)
+        except RegistrationFailed as e:
+            # Keep the rejected solution for inspection (threshold calibration), never as the output.
+            write_registration(e.record, Path(work_dir) / "rejected_registration.json")
+            raise
+        write_registration(record, self.output)
+        print_summary(record)
+        CONSOLE.print(f"[bold green]wrote[/] {self.output}")
+        return record
+
+    def _ground_truth(self, renderers) -> list[np.ndarray] | None:
+        if self.ground_truth is not None and self.gt_transforms:
+            raise RegistrationError("pass either --ground-truth with --gt-captures or --gt-transforms, not both")
+        if self.ground_truth is not None:
+            if len(self.gt_captures) != len(renderers):
+                raise RegistrationError(
+                    f"--gt-captures names {len(self.gt_captures)} captures for {len(renderers)} runs; name one per run"
+                )
+            capture_to_world = load_ground_truth_captures(self.ground_truth, self.gt_captures)
+            # The run's NeRF frame is its dataset (capture) frame mapped by the dataparser: world <- capture <- NeRF.
+            return [
+                c2w if r.data_to_nerf is None else c2w @ np.linalg.inv(r.data_to_nerf)
+                for c2w, r in zip(capture_to_world, renderers, strict=True)
+            ]
+        if self.gt_transforms:
+            if len(self.gt_transforms) != len(renderers):
+                raise RegistrationError(
+                    f"--gt-transforms has {len(self.gt_transforms)} files for {len(renderers)} runs; pass one per run"
+                )
+            out = []
+            for path in self.gt_transforms:
+                try:
+                    data = json.loads(Path(path).read_text())
+                    T = np.asarray(data["nerf_to_world"] if isinstance(data, dict) else data, dtype=np.float64)
+                except (OSError, ValueError, KeyError, TypeError) as e:
+                    raise RegistrationError(f"{path}: unreadable ground-truth transform ({type(e).__name__})") from None
+                if T.shape not in ((4, 4), (3, 4)) or not np.isfinite(T).all():
+                    raise RegistrationError(f"{path}: expected a finite 4x4 nerf_to_world matrix, got shape {T.shape}")
+                out.append(T)
+            return out
+        return None
+
+
+def _fmt(x, spec: str = ".3g") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def print_summary(record: dict, console: Console = CONSOLE) -> None:
+    """Rich tables: per NeRF (views, scale, residuals, ground-truth errors) and per pair (overlap, self-check)."""
+    has_gt = record.get("ground_truth") is not None
+    table = Table(title=f"Registration into the frame of {record['reference']['name']}")
+    for col in ("NeRF", "rendered", "kept", "registered", "scale", "scale spread", "rot res (deg)", "centre res",
+                "estimator"):
+        table.add_column(col, justify="left" if col in ("NeRF", "estimator") else "right")
+    if has_gt:
+        for col in ("r_err (deg)", "t_err", "s_err", "ok"):
+            table.add_column(col, justify="right")
+    for n in record["nerfs"]:
+        v, res = n["views"], n["residuals"]
+        row = [
+            n["name"], str(v["rendered"]), str(v["kept"]), str(v["registered"]), _fmt(n["scale_to_reference"], ".4g"),
+            _fmt(n["scale_spread"], ".2e"), _fmt(res["rotation_deg_median"], ".3f"), _fmt(res["centre_median"], ".2e"),
+            n["estimator"],
+        ]
+        if has_gt:
+            g = n["ground_truth"]
+            row += [_fmt(g["r_err_deg"], ".4f"), _fmt(g["t_err"], ".2e"), _fmt(g["s_err"], ".2e"),
+                    "[red]FAIL[/]" if g["failure"] else "[green]ok[/]"]
+        table.add_row(*row)
+    console.print(table)
+    pairs = Table(title="NeRF pairs")
+    for col in ("pair", "covisible 3D points", "cross-render NCC", "check"):
+        pairs.add_column(col, justify="left" if col == "pair" else "right")
+    for p in record["pairs"]:
+        sc = p["self_check"]
+        pairs.add_row(" / ".join(p["names"]), str(p["covisible_points"]), "-" if sc is None else _fmt(sc["ncc"], ".3f"),
+                      "-" if sc is None else ("[green]passed[/]" if sc["passed"] else "[red]failed[/]"))
+    console.print(pairs)
+    t = record["timings_s"]
+    console.print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()))
+    if has_gt and record["ground_truth"]["failure"]:
+        console.print("[bold yellow]ground truth: the registration is a failure by the paper's rule[/]")
+
+
+def run(cmd: RegisterCommand, renderers: list | None = None) -> int:
+    """Run the command; known bad-input errors become one red line and exit status 1."""
+    from nerfuser_ns.runs import RunLoadError
+
+    try:
+        cmd.main(renderers)
+    except (RegistrationError, RunLoadError) as e:
+        message = str(e).splitlines()[0] if str(e) else type(e).__name__
+        ERR_CONSOLE.print(Text.assemble(("error: ", "bold red"), (message, "red")), highlight=False)
+        return 1
+    return 0
 
 
 def entrypoint() -> None:
-    print("ns-nerfuser-register: not implemented yet (see the project's issue tracker)", file=sys.stderr)
-    sys.exit(2)
+    """Console script ``ns-nerfuser-register``."""
+    tyro.extras.set_accent_color("bright_yellow")
+    sys.exit(run(tyro.cli(RegisterCommand)))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,193 @@
+"""Things that render images from camera poses, for registration from re-rendering.
+
+Registration only needs "something that renders RGB from a camera-to-world pose in its own frame". Two adapters:
+
+* :class:`NerfstudioRenderer`: a trained nerfstudio run, loaded lazily from its own config.yml (see
+  :mod:`nerfuser_ns.runs`).
+* :class:`SceneFrameRenderer`: a ground-truth generated scene (:mod:`nerfuser_ns.scenes`) seen through a frame's
+  SIM(3), i.e. a perfect "NeRF" whose frame is, e.g., a capture frame. It makes end-to-end tests fast and exact.
+
+Poses are camera-to-world 4x4 in nerfstudio's OpenGL camera convention, intrinsics a :class:`scenes.Intrinsics`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from jaxtyping import Float
+
+from nerfuser_ns.scenes import Intrinsics
+
+
+@dataclass
+class RenderBatch:
+    """Rendered views."""
+
+    rgb: Float[np.ndarray, "n h w 3"]
+    """Colour, float32 in [0, 1]."""
+    accumulation: Float[np.ndarray, "n h w"] | None = None
+    """Opacity along each pixel's ray in [0, 1] (None if the renderer has no notion of it: everything is seen)."""
+
+
+@runtime_checkable
+class Renderer(Protocol):
+    """Renders RGB (and accumulation) from camera poses expressed in the renderer's own frame."""
+
+    name: str
+    """Human-readable name, used in messages and the registration file."""
+
+    def cache_key(self) -> str:
+        """A string that changes whenever the renders would (weights file, its mtime...): keys the render cache."""
+        ...
+
+    def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics) -> RenderBatch:
+        """Render the views ``c2w`` (own frame, OpenGL axes) with shared pinhole ``intrinsics``."""
+        ...
+
+    def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
+        """Camera-to-world poses the renderer was trained from, in its own frame (None if unknown)."""
+        ...
+
+
+def _as_4x4(c2w: np.ndarray) -> np.ndarray:
+    c2w = np.asarray(c2w, dtype=np.float64)
+    if c2w.ndim == 2:
+        c2w = c2w[None]
+    if c2w.shape[-2:] == (3, 4):
+        c2w = np.concatenate([c2w, np.broadcast_to([0.0, 0.0, 0.0, 1.0], c2w.shape[:-2] + (1, 4))], axis=-2)
+    if c2w.shape[-2:] != (4, 4):
+        raise ValueError(f"poses must be [N, 3|4, 4], got {c2w.shape}")
+    return c2w
+
+
+class SceneFrameRenderer:
+    """A ground-truth scene seen through ``frame_to_world`` (SIM(3)): a perfect NeRF living in that frame.
+
+    A pose ``G`` in the frame is rendered from the world pose ``transform_poses(frame_to_world, G)``; the pinhole
+    intrinsics are unchanged (a similarity does not change what a camera sees). Accumulation is the hit mask.
+    """
+
+    def __init__(
+        self,
+        scene,
+        frame_to_world: Float[np.ndarray, "4 4"],
+        name: str,
+        training_c2w: Float[np.ndarray, "n 4 4"] | None = None,
+        supersample: int = 1,
+        key: str = "",
+    ):
+        self.scene = scene
+        self.frame_to_world = np.asarray(frame_to_world, dtype=np.float64)
+        self.name = name
+        self._training = None if training_c2w is None else _as_4x4(training_c2w)
+        self.supersample = supersample
+        self._key = key
+
+    @classmethod
+    def from_layout(
+        cls, layout, capture: str, frame_to_capture: np.ndarray | None = None, supersample: int = 1
+    ) -> SceneFrameRenderer:
+        """The capture ``capture`` of a :class:`scenes.SceneLayout`, in the capture's frame.
+
+        ``frame_to_capture`` (SIM(3)) puts the renderer in another frame, e.g. ``inv(data_to_nerf)`` to mimic the
+        frame a nerfstudio run trained on that capture lives in. Training poses are the capture's, in that frame.
+        """
+        from nerfuser_ns.sim3 import compose, invert_sim3, transform_poses
+
+        caps = {c.name: c for c in layout.captures}
+        if capture not in caps:
+            raise ValueError(f"no capture {capture!r} in the layout; it has {sorted(caps)}")
+        cap = caps[capture]
+        frame_to_capture = np.eye(4) if frame_to_capture is None else np.asarray(frame_to_capture, dtype=np.float64)
+        frame_to_world = compose(cap.capture_to_world, frame_to_capture)
+        training = transform_poses(invert_sim3(frame_to_capture), cap.c2w_capture)
+        key = json.dumps({"layout": layout.layout, "params": layout.params}, sort_keys=True, default=str)
+        return cls(layout.scene, frame_to_world, capture, training, supersample, key=key)
+
+    def cache_key(self) -> str:
+        h = hashlib.sha256(self._key.encode())
+        h.update(np.round(self.frame_to_world, 12).tobytes())
+        h.update(f"{self.name}|{self.supersample}".encode())
+        return "scene:" + h.hexdigest()
+
+    def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics) -> RenderBatch:
+        from nerfuser_ns.scenes import render
+        from nerfuser_ns.sim3 import transform_poses
+
+        world = transform_poses(self.frame_to_world, _as_4x4(c2w))
+        k = intrinsics
+        rgbs, accs = [], []
+        for pose in world:
+            out = render(self.scene, pose, k.fx, k.fy, k.cx, k.cy, k.width, k.height, supersample=self.supersample)
+            rgbs.append(out.rgb.numpy())
+            accs.append(out.mask.numpy().astype(np.float32))
+        return RenderBatch(np.stack(rgbs).astype(np.float32), np.stack(accs))
+
+    def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
+        return None if self._training is None else self._training.copy()
+
+
+class NerfstudioRenderer:
+    """A trained nerfstudio run, rebuilt from its own config.yml on first use.
+
+    Construction checks the config and that a checkpoint exists (``runs.RunLoadError`` otherwise) without loading
+    any weights, so bad inputs fail before anything is rendered.
+    """
+
+    def __init__(
+        self,
+        config_path: Path | str,
+        device: str = "cpu",
+        data_override: Path | None = None,
+        eval_num_rays_per_chunk: int | None = None,
+        name: str | None = None,
+    ):
+        from nerfuser_ns import runs
+
+        self.config_path = runs.resolve_config_path(config_path)
+        config = runs.read_config(self.config_path)
+        self.checkpoint_path, self.step = runs._latest_checkpoint(self.config_path, config, None)
+        self.data_to_nerf = runs.read_dataparser_transform(self.config_path)
+        self.name = name or str(config_path)
+        self.device = device
+        self.data_override = data_override
+        self.eval_num_rays_per_chunk = eval_num_rays_per_chunk
+        self._loaded = None
+
+    def _load(self, with_data: bool = False):
+        from nerfuser_ns import runs
+
+        if self._loaded is None or (with_data and self._loaded.pipeline is None):
+            self._loaded = runs.load_run(
+                self.config_path,
+                device=self.device,
+                with_data=with_data,
+                data_override=self.data_override,
+                eval_num_rays_per_chunk=self.eval_num_rays_per_chunk,
+            )
+        return self._loaded
+
+    def cache_key(self) -> str:
+        stat = self.checkpoint_path.stat()
+        ckpt = self.checkpoint_path.resolve()
+        return f"nerfstudio:{self.config_path.resolve()}|{ckpt}|{stat.st_mtime_ns}|{stat.st_size}"
+
+    def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics) -> RenderBatch:
+        from nerfuser_ns import runs
+
+        loaded = self._load()
+        k = intrinsics
+        cameras = runs.make_cameras(_as_4x4(c2w)[:, :3, :], k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        out = runs.render_views(loaded.model, cameras, outputs=("rgb", "accumulation"), progress=False)
+        rgb = out["rgb"].clamp(0, 1).numpy().astype(np.float32)
+        return RenderBatch(rgb, out["accumulation"][..., 0].clamp(0, 1).numpy().astype(np.float32))
+
+    def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
+        loaded = self._load(with_data=True)
+        cams = loaded.pipeline.datamanager.train_dataset.cameras
+        return _as_4x4(cams.camera_to_worlds.detach().cpu().numpy())
