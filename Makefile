@@ -8,4 +8,4 @@ test:  ## set up the environment and run the tests
 	bash scripts/test.sh
 
 lint:
-	bash -c 'VENV=$$(bash scripts/setup_env.sh | tail -n 1) && $$VENV/bin/ruff check . && $$VENV/bin/ruff format --check .'
+	bash -c 'VENV=$$(bash scripts/setup_env.sh | tail -n 1) && $$VENV/bin/ruff check .'

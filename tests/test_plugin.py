@@ -41,3 +41,59 @@ def test_ns_train_help_lists_methods():
 def test_register_command_installed():
     out = subprocess.run([_bin("ns-nerfuser-register"), "--help"], capture_output=True, text=True, timeout=300)
     assert "ns-nerfuser-register" in (out.stdout + out.stderr)
+
+
+def test_stock_ns_train_and_ns_eval_work_offline(tmp_path):
+    """With the plugin installed, stock ns-train trains and ns-eval loads (torch >= 2.6) with no network."""
+    import json
+
+    from nerfuser_ns import scenes
+
+    layout = scenes.make_layout("object-centric", seed=5, num_views=10, num_test_views=1, width=32, height=24)
+    scenes.write_scene(layout, tmp_path / "scene", supersample=1)
+    # any download attempt fails at once, even on a machine that has internet
+    env = {
+        **os.environ,
+        "NERFUSER_CPU_FAST_PATH": "0",
+        "HTTP_PROXY": "http://127.0.0.1:9",
+        "HTTPS_PROXY": "http://127.0.0.1:9",
+        "http_proxy": "http://127.0.0.1:9",
+        "https_proxy": "http://127.0.0.1:9",
+    }
+    train_cmd = [
+        _bin("ns-train"),
+        "nerfacto-cpu",
+        "--data",
+        str(tmp_path / "scene" / "capture_a"),
+        "--output-dir",
+        str(tmp_path / "out"),
+        "--experiment-name",
+        "cli",
+        "--timestamp",
+        "t",
+        "--max-num-iterations",
+        "3",
+        "--pipeline.datamanager.train-num-rays-per-batch",
+        "128",
+        "--pipeline.model.num-levels",
+        "2",
+        "--pipeline.model.log2-hashmap-size",
+        "10",
+        "--pipeline.model.num-nerf-samples-per-ray",
+        "8",
+        "--pipeline.model.num-proposal-samples-per-ray",
+        "8",
+        "8",
+        "--pipeline.model.eval-num-rays-per-chunk",
+        "512",
+    ]
+    out = subprocess.run(train_cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, (out.stdout + out.stderr)[-3000:]
+    config = tmp_path / "out" / "cli" / "nerfacto-cpu" / "t" / "config.yml"
+    assert config.is_file()
+    assert list((config.parent / "nerfstudio_models").glob("step-*.ckpt"))
+    eval_cmd = [_bin("ns-eval"), "--load-config", str(config), "--output-path", str(tmp_path / "eval.json")]
+    out = subprocess.run(eval_cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, (out.stdout + out.stderr)[-3000:]
+    results = json.loads((tmp_path / "eval.json").read_text())["results"]
+    assert results["psnr"] > 5
