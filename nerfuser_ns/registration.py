@@ -118,6 +118,8 @@ class SfMConfig:
     """Threads for extraction, matching and mapping (-1: all cores)."""
     seed: int = 0
     """pycolmap's random seed (mapping and RANSAC), for reproducible runs."""
+    verbose: bool = False
+    """Show COLMAP's own log (INFO level)."""
 
 
 @dataclass
@@ -399,6 +401,7 @@ def run_sfm(
     db = folder / "database.db"
     timings = {}
     device = pycolmap.Device.cpu
+    pycolmap.logging.minloglevel = 0 if cfg.verbose else 2  # glog: 0 INFO, 1 WARNING, 2 ERROR
 
     with console.status(f"SfM: extracting SIFT features from {len(used)} renders"):
         t0 = time.perf_counter()
@@ -645,6 +648,34 @@ def load_ground_truth_captures(path: Path, captures: Sequence[str]) -> list[np.n
 # The whole registration
 
 
+def _validate_settings(config: RegistrationConfig) -> Intrinsics:
+    """Check the settings before anything is rendered; returns the render intrinsics."""
+    sc = config.sampling
+    try:
+        intr = sc.intrinsics()
+        if sc.source in ("hemisphere", "both"):
+            sample_hemisphere_poses(
+                sc.num_poses, sc.radius, sc.elevation_range_deg, sc.center, jitter_deg=sc.jitter_deg, seed=sc.seed
+            )
+    except ValueError as e:
+        raise RegistrationError(f"bad pose sampling settings: {e}") from None
+    checks = [
+        (sc.source in ("hemisphere", "training", "both"), f"unknown pose source {sc.source!r}"),
+        (sc.max_training_poses >= 2, "--sampling.max-training-poses must be >= 2"),
+        (0.0 <= sc.min_view_accumulation <= 1.0, "--sampling.min-view-accumulation must be in [0, 1]"),
+        (config.self_check_views >= 0, "--self-check-views must be >= 0"),
+        (config.ncc_downsample >= 1, "--ncc-downsample must be >= 1"),
+        (config.min_registered_views >= 2, "--min-registered-views must be >= 2"),
+        (config.umeyama_max_error > 0, "--umeyama-max-error must be > 0"),
+        (config.sfm.exhaustive_max_images >= 2 and config.sfm.own_neighbors >= 1 and config.sfm.cross_views >= 1,
+         "--sfm.exhaustive-max-images, --sfm.own-neighbors and --sfm.cross-views must be positive"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise RegistrationError(message)
+    return intr
+
+
 def register(
     renderers: Sequence[Renderer],
     config: RegistrationConfig | None = None,
@@ -676,7 +707,7 @@ def register(
             if keys[a] == keys[b]:
                 raise RegistrationError(f"{names[a]}: passed twice (same run as {names[b]}); pass distinct runs")
     min_views = max(config.min_registered_views, 3 if config.estimator == "umeyama-ransac" else 2)
-    intr = config.sampling.intrinsics()
+    intr = _validate_settings(config)
     timings: dict[str, float] = {}
 
     # 1. Render (or reuse the renders of a previous run).
