@@ -1,0 +1,596 @@
+"""The ``nerfuser`` model: several frozen, registered NeRFs rendered as one scene (NeRFuser, Sec. 3.3).
+
+Per ray batch (rays in the COMMON frame):
+
+1. each ray is mapped into each NeRF's own frame through ``T_common->nerf`` (origins, re-normalised directions,
+   near/far), so every NeRF sees the ray it would see itself, and goes through that NeRF's own collider, proposal
+   sampler and field (:class:`NerfactoAdapter`);
+2. each NeRF's sample intervals are converted back to common-frame ray distances (a NeRF with scale ``s`` in its
+   SIM(3) has ``t_common = s * t_nerf`` for unit directions);
+3. the NeRFs are blended with the selected method (``nerf``, ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample``),
+   every NeRF keeping its own background term (nerfacto "last_sample").
+
+Frames: the sub-models never move; only rays do. ``pixel_area`` (the pixel footprint at unit ray distance, a solid
+angle) is invariant under a similarity: at distance ``t_nerf = t / s`` the footprint is ``pixel_area * t^2 / s^2``,
+exactly the common-frame footprint ``pixel_area * t^2`` in NeRF units. So it is passed on unchanged.
+
+The blend method, gamma and tau can be changed at render time: set :attr:`NerfuserModel.blend_method` (and
+``gamma``/``tau``), use the viewer's "NeRFuser" controls, or set the environment variables ``NERFUSER_BLEND_METHOD``,
+``NERFUSER_GAMMA``, ``NERFUSER_TAU`` (``none`` disables the test) before ``ns-render``/``ns-eval`` start.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.models.base_model import Model, ModelConfig
+from nerfstudio.utils import colormaps
+from torch import Tensor, nn
+from torch.nn import Parameter
+
+from nerfuser_ns import blending, runtime
+from nerfuser_ns.blending import BLEND_METHODS, BlendMethod
+
+_ENV_METHOD = "NERFUSER_BLEND_METHOD"
+_ENV_GAMMA = "NERFUSER_GAMMA"
+_ENV_TAU = "NERFUSER_TAU"
+
+# Colours of the colour-coded share map (tab10).
+_PALETTE = torch.tensor(
+    [
+        [0.122, 0.467, 0.706],
+        [1.000, 0.498, 0.055],
+        [0.173, 0.627, 0.173],
+        [0.839, 0.153, 0.157],
+        [0.580, 0.404, 0.741],
+        [0.549, 0.337, 0.294],
+        [0.890, 0.467, 0.761],
+        [0.498, 0.498, 0.498],
+        [0.737, 0.741, 0.133],
+        [0.090, 0.745, 0.812],
+    ]
+)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Sub-model adapters
+
+
+@dataclass
+class NerfSamples:
+    """One NeRF's samples along a batch of rays, in ITS OWN frame's ray distances."""
+
+    starts: Float[Tensor, "num_rays num_samples"]
+    ends: Float[Tensor, "num_rays num_samples"]
+    weights: Float[Tensor, "num_rays num_samples"]
+    """Termination probabilities ``T_k alpha_k``."""
+    rgbs: Float[Tensor, "num_rays num_samples 3"]
+    background_rgb: Float[Tensor, "num_rays 3"]
+    """The colour its own renderer puts behind the samples (nerfacto "last_sample": the last sample's colour)."""
+
+
+class NerfAdapter:
+    """The small interface the fused model needs from a sub-model (subclass it for other ray-marching models).
+
+    ``samples`` gets rays in the sub-model's own frame, nears/fars already set, and returns its samples.
+    """
+
+    def __init__(self, model: Model) -> None:
+        self.model = model
+
+    @classmethod
+    def supports(cls, model: Model) -> bool:
+        raise NotImplementedError
+
+    def collide(self, ray_bundle: RayBundle) -> RayBundle:
+        """Sets nears/fars as the sub-model would (its own collider, in its frame) unless already set."""
+        collider = getattr(self.model, "collider", None)
+        if collider is not None:
+            ray_bundle = collider(ray_bundle)
+        return ray_bundle
+
+    def samples(self, ray_bundle: RayBundle) -> NerfSamples:
+        raise NotImplementedError
+
+
+def _background(background_color: Any, rgbs: Tensor) -> Tensor:
+    """The background colour a nerfstudio RGBRenderer would use in eval, per ray."""
+    if background_color == "last_sample":
+        return rgbs[..., -1, :]
+    if background_color == "random" or background_color is None:
+        return torch.zeros_like(rgbs[..., -1, :])  # eval renders "random" as if on black
+    if isinstance(background_color, str):
+        from nerfstudio.utils import colors
+
+        background_color = colors.COLORS_DICT[background_color]
+    return torch.as_tensor(background_color, dtype=rgbs.dtype, device=rgbs.device).expand_as(rgbs[..., -1, :])
+
+
+class NerfactoAdapter(NerfAdapter):
+    """nerfacto and its family: ``proposal_sampler`` -> ``field.forward`` -> ``ray_samples.get_weights``."""
+
+    @classmethod
+    def supports(cls, model: Model) -> bool:
+        return all(hasattr(model, a) for a in ("proposal_sampler", "density_fns", "field", "renderer_rgb"))
+
+    def samples(self, ray_bundle: RayBundle) -> NerfSamples:
+        m = self.model
+        ray_samples, _, _ = m.proposal_sampler(ray_bundle, density_fns=m.density_fns)
+        field_outputs = m.field.forward(ray_samples, compute_normals=False)
+        weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
+        rgbs = torch.nan_to_num(field_outputs[FieldHeadNames.RGB])  # as RGBRenderer does in eval
+        return NerfSamples(
+            starts=ray_samples.frustums.starts[..., 0],
+            ends=ray_samples.frustums.ends[..., 0],
+            weights=weights[..., 0],
+            rgbs=rgbs,
+            background_rgb=_background(m.renderer_rgb.background_color, rgbs),
+        )
+
+
+ADAPTERS: list[type[NerfAdapter]] = [NerfactoAdapter]
+"""Adapter classes tried in order; append yours to support another model family."""
+
+
+def make_adapter(model: Model) -> NerfAdapter:
+    for cls in ADAPTERS:
+        if cls.supports(model):
+            return cls(model)
+    raise TypeError(
+        f"nerfuser: no adapter for {type(model).__name__}; supported: nerfacto-family models "
+        "(register a NerfAdapter subclass in nerfuser_ns.model.ADAPTERS)"
+    )
+
+
+class _FrozenModels(nn.Module):
+    """Holds the sub-models outside ``parameters()`` and ``state_dict()`` but moves them with ``.to()``.
+
+    They are rebuilt from their own runs at load time, so the fused checkpoint does not copy their weights, and the
+    optimizer sees no parameters. They always stay in eval mode.
+    """
+
+    def __init__(self, models: Sequence[Model]) -> None:
+        super().__init__()
+        self.models: list[Model] = list(models)  # a plain list: not registered as children
+        for m in self.models:
+            m.eval()
+            m.requires_grad_(False)
+
+    def _apply(self, fn, recurse: bool = True):  # noqa: ANN001 - torch's signature
+        seen: set[int] = set()
+        for m in self.models:
+            if id(m) not in seen:  # the same model may appear twice (tests fuse copies)
+                seen.add(id(m))
+                m._apply(fn)
+        return super()._apply(fn, recurse)
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for m in self.models:
+            m.eval()
+        return self
+
+    def __len__(self) -> int:
+        return len(self.models)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Ray mapping
+
+
+def _camera_indices(ray_bundle: RayBundle, num_train_data: int) -> Tensor:
+    """Camera indices valid for a sub-model (nerfacto's field needs them; in eval it uses the mean embedding)."""
+    if ray_bundle.camera_indices is not None:
+        return ray_bundle.camera_indices.clamp(0, max(num_train_data - 1, 0))
+    return torch.zeros_like(ray_bundle.origins[..., :1], dtype=torch.long)
+
+
+def map_rays(
+    ray_bundle: RayBundle, common_to_nerf: Float[Tensor, "4 4"], num_train_data: int
+) -> tuple[RayBundle, Float[Tensor, "num_rays 1"]]:
+    """The common-frame rays as seen in one NeRF's frame, and the factor ``k`` with ``t_nerf = k * t_common``.
+
+    ``k = |A d|`` for the linear part ``A`` of ``T_common->nerf`` (``1 / s`` for unit directions); directions are
+    re-normalised, nears/fars (if set) scaled by ``k``. Camera indices are clamped into the sub-model's range (in eval
+    nerfacto uses its average appearance embedding anyway).
+    """
+    A, b = common_to_nerf[:3, :3], common_to_nerf[:3, 3]
+    origins = ray_bundle.origins @ A.T + b
+    directions = ray_bundle.directions @ A.T
+    k = torch.linalg.vector_norm(directions, dim=-1, keepdim=True)
+    directions = directions / k
+    mapped = RayBundle(
+        origins=origins,
+        directions=directions,
+        pixel_area=ray_bundle.pixel_area,
+        camera_indices=_camera_indices(ray_bundle, num_train_data),
+        nears=None if ray_bundle.nears is None else ray_bundle.nears * k,
+        fars=None if ray_bundle.fars is None else ray_bundle.fars * k,
+        metadata=dict(ray_bundle.metadata),
+        times=ray_bundle.times,
+    )
+    return mapped, k
+
+
+def median_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
+    """nerfstudio's "median" depth: the midpoint of the sample where the accumulated weight reaches 0.5."""
+    cum = torch.cumsum(weights, dim=-1)
+    split = torch.full_like(cum[..., :1], 0.5)
+    idx = torch.searchsorted(cum.contiguous(), split, side="left").clamp(0, mids.shape[-1] - 1)
+    return torch.gather(mids, -1, idx)[..., 0]
+
+
+def expected_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
+    """nerfstudio's "expected" depth, clipped per ray to the sample range."""
+    depth = (weights * mids).sum(-1) / (weights.sum(-1) + 1e-10)
+    return torch.clip(depth, mids.amin(-1), mids.amax(-1))
+
+
+def _median_mids(merged: blending.MergedSamples) -> Float[Tensor, "*bs m"]:
+    """Merged midpoints for the median depth, zero-length intervals taking the previous real interval's midpoint.
+
+    Merging duplicates boundaries (e.g. identical NeRFs, padding); where the accumulated weight never reaches 0.5
+    the median falls on the last interval, which must be the last real one, as for a single NeRF.
+    """
+    pos = merged.deltas > 0
+    idx = torch.arange(pos.shape[-1], device=pos.device).expand_as(pos)
+    last_real = torch.where(pos, idx, 0).cummax(dim=-1).values
+    return merged.midpoints.gather(-1, last_real)
+
+
+def _pad_samples(x: Tensor, k: int, value: Tensor | float, dim: int) -> Tensor:
+    """Pads the samples axis to ``k`` (zero-length, zero-weight samples at the last end keep bins contiguous)."""
+    missing = k - x.shape[dim]
+    if missing == 0:
+        return x
+    shape = list(x.shape)
+    shape[dim] = missing
+    if isinstance(value, Tensor):
+        pad = value.unsqueeze(dim).expand(shape)
+    else:
+        pad = torch.full(shape, value, dtype=x.dtype, device=x.device)
+    return torch.cat([x, pad], dim=dim)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Model
+
+
+@dataclass
+class NerfuserModelConfig(ModelConfig):
+    """Fused NeRFs (NeRFuser). The sub-models come from the fusion spec (see nerfuser_ns.data), never from here."""
+
+    _target: type = field(default_factory=lambda: NerfuserModel)
+    enable_collider: bool = False
+    """Off: each sub-model applies its own collider in its own frame (what it would do itself). If the incoming
+    rays already carry nears/fars, they are mapped into each NeRF's frame instead."""
+    blend_method: BlendMethod = "idw-sample"
+    """``nerf`` (one NeRF), ``nearest``, ``idw-2d``, ``idw-3d`` or ``idw-sample`` (NeRFuser)."""
+    gamma: float = 5.0
+    """IDW blending rate (w ~ d^-gamma); 0: mean, inf: nearest. The paper uses 5 (objects), 10 (street)."""
+    tau: float | None = 1.8
+    """Distance test: where the 2nd-nearest NeRF origin is > tau times as far from the camera as the nearest, only the
+    nearest NeRF is used (IDW methods). None disables it. The paper uses 1.8 (objects), 1.2 (street)."""
+    reference_nerf: int = 0
+    """The NeRF rendered by the ``nerf`` method."""
+    share_outputs: bool = True
+    """Also output ``share_<i>`` (each NeRF's share of the pixel weight) and a colour-coded ``nerf_share`` map."""
+    render_all_methods: bool = False
+    """Also output ``rgb_<method>`` for every method (``-`` as ``_``) and report their metrics in ns-eval."""
+    eval_num_rays_per_chunk: int = 4096
+    """Rays per forward pass when rendering images."""
+
+
+class NerfuserModel(Model):
+    """Renders N frozen, registered sub-models as one scene in the common frame.
+
+    Sub-models come from ``metadata["nerfuser"]`` (a :class:`nerfuser_ns.data.FusionSpec`, set by the datamanager):
+    each is rebuilt from its own run with :func:`nerfuser_ns.runs.load_run`. ``metadata["nerfuser_models"]``, a list of
+    ``(name, Model, nerf_to_common)``, passes already loaded models instead (tests, scripts).
+    """
+
+    config: NerfuserModelConfig
+
+    def populate_modules(self) -> None:
+        super().populate_modules()
+        runtime.install()
+        metadata = self.kwargs.get("metadata") or {}
+        if metadata.get("nerfuser_models") is not None:
+            entries = list(metadata["nerfuser_models"])
+        elif metadata.get("nerfuser") is not None:
+            from nerfuser_ns.runs import load_run
+
+            spec = metadata["nerfuser"]
+            entries = [(n.name, load_run(n.config_path, device="cpu").model, n.nerf_to_common) for n in spec.nerfs]
+        else:
+            raise ValueError("nerfuser: no sub-models; the datamanager passes them as metadata['nerfuser']")
+        if not entries:
+            raise ValueError("nerfuser: no sub-models to fuse")
+        self.nerf_names = [str(e[0]) for e in entries]
+        self.nerfs = _FrozenModels([e[1] for e in entries])
+        self.adapters = [make_adapter(m) for m in self.nerfs.models]
+        T = torch.tensor(np.stack([np.asarray(e[2], dtype=np.float64) for e in entries]), dtype=torch.float64)
+        scales = torch.linalg.det(T[:, :3, :3]).pow(1.0 / 3.0)
+        T_inv = torch.linalg.inv(T)
+        # Not persistent: the registration comes from the spec, not from the fused checkpoint.
+        self.register_buffer("nerf_to_common", T.float(), persistent=False)
+        self.register_buffer("common_to_nerf", T_inv.float(), persistent=False)
+        self.register_buffer("nerf_origins", T[:, :3, 3].float(), persistent=False)
+        self.register_buffer("nerf_scales", scales.float(), persistent=False)
+        self._identity = [bool(torch.equal(t, torch.eye(4, dtype=t.dtype))) for t in T]
+
+        # Render-time settings (the viewer and the environment may change them).
+        self.blend_method: str = os.environ.get(_ENV_METHOD, self.config.blend_method)
+        self.gamma: float = float(os.environ.get(_ENV_GAMMA, self.config.gamma))
+        tau_env = os.environ.get(_ENV_TAU)
+        self.tau: float | None = self.config.tau
+        if tau_env is not None:
+            self.tau = None if tau_env.strip().lower() in ("", "none") else float(tau_env)
+        self.reference_nerf = self.config.reference_nerf
+        self._check_settings()
+        self._add_viewer_controls()
+
+        from torchmetrics.functional import structural_similarity_index_measure
+        from torchmetrics.image import PeakSignalNoiseRatio
+        from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity  # lazy/offline after runtime.install
+
+        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
+        self.ssim = structural_similarity_index_measure
+        self.lpips = LearnedPerceptualImagePatchSimilarity(normalize=True)
+
+    @property
+    def num_nerfs(self) -> int:
+        return len(self.adapters)
+
+    def _check_settings(self) -> None:
+        if self.blend_method not in BLEND_METHODS:
+            raise ValueError(f"nerfuser: unknown blend method {self.blend_method!r}; choose one of {BLEND_METHODS}")
+        if not (self.gamma >= 0):
+            raise ValueError(f"nerfuser: gamma must be >= 0, got {self.gamma}")
+        if self.tau is not None and not (self.tau >= 1):
+            raise ValueError(f"nerfuser: tau must be >= 1 (a distance ratio) or None, got {self.tau}")
+        if not -self.num_nerfs <= self.reference_nerf < self.num_nerfs:
+            raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {self.num_nerfs} NeRFs")
+
+    def _add_viewer_controls(self) -> None:
+        try:
+            from nerfstudio.viewer.viewer_elements import ViewerDropdown, ViewerNumber
+        except Exception:  # noqa: BLE001 - the viewer is optional
+            return
+
+        def set_method(element) -> None:  # noqa: ANN001
+            self.blend_method = element.value
+
+        def set_gamma(element) -> None:  # noqa: ANN001
+            self.gamma = max(float(element.value), 0.0)
+
+        def set_tau(element) -> None:  # noqa: ANN001
+            self.tau = None if float(element.value) <= 0 else max(float(element.value), 1.0)
+
+        def set_reference(element) -> None:  # noqa: ANN001
+            self.reference_nerf = int(element.value) % self.num_nerfs
+
+        self.viewer_blend_method = ViewerDropdown(
+            "NeRFuser blend method", self.blend_method, list(BLEND_METHODS), cb_hook=set_method
+        )
+        self.viewer_gamma = ViewerNumber("NeRFuser gamma", float(self.gamma), cb_hook=set_gamma)
+        self.viewer_tau = ViewerNumber("NeRFuser tau (0: off)", float(self.tau or 0.0), cb_hook=set_tau)
+        self.viewer_reference = ViewerNumber("NeRFuser reference NeRF", int(self.reference_nerf), cb_hook=set_reference)
+
+    # --- nerfstudio Model API ---------------------------------------------------------------------------------------
+
+    def get_param_groups(self) -> dict[str, list[Parameter]]:
+        return {}  # frozen: nothing to optimise
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> dict[str, Tensor]:  # noqa: ANN001
+        return {}
+
+    def get_metrics_dict(self, outputs, batch) -> dict[str, Tensor]:  # noqa: ANN001
+        if "image" not in batch:
+            return {}
+        gt = batch["image"][..., :3].to(self.device)
+        return {"psnr": self.psnr(outputs["rgb"], gt)}
+
+    @torch.no_grad()
+    def nerf_samples(self, ray_bundle: RayBundle) -> list[tuple[NerfSamples, Tensor]]:
+        """Every NeRF's samples for the common-frame rays, with ``k`` (``t_nerf = k * t_common``) per ray."""
+        out = []
+        for i, adapter in enumerate(self.adapters):
+            if self._identity[i]:  # exactly the rays the NeRF would see itself, no float round trip
+                bundle = RayBundle(
+                    origins=ray_bundle.origins,
+                    directions=ray_bundle.directions,
+                    pixel_area=ray_bundle.pixel_area,
+                    camera_indices=_camera_indices(ray_bundle, adapter.model.num_train_data),
+                    nears=ray_bundle.nears,
+                    fars=ray_bundle.fars,
+                    metadata=dict(ray_bundle.metadata),
+                    times=ray_bundle.times,
+                )
+                k = torch.ones_like(ray_bundle.origins[..., :1])
+            else:
+                bundle, k = map_rays(ray_bundle, self.common_to_nerf[i], adapter.model.num_train_data)
+            bundle = adapter.collide(bundle)
+            out.append((adapter.samples(bundle), k))
+        return out
+
+    def get_outputs(self, ray_bundle: RayBundle) -> dict[str, Tensor]:
+        shape = ray_bundle.origins.shape[:-1]
+        flat = ray_bundle.flatten() if len(shape) != 1 else ray_bundle
+        outputs = self._blend(flat, self.nerf_samples(flat))
+        return {k: v.reshape(*shape, v.shape[-1]) for k, v in outputs.items()}
+
+    # --- blending ---------------------------------------------------------------------------------------------------
+
+    def _blend(self, ray_bundle: RayBundle, per_nerf: list[tuple[NerfSamples, Tensor]]) -> dict[str, Tensor]:
+        n = self.num_nerfs
+        origins, directions = ray_bundle.origins, ray_bundle.directions
+        nerf_origins = self.nerf_origins.to(origins)
+        # Common-frame sample intervals: t_common = t_nerf / k.
+        kmax = max(s.starts.shape[-1] for s, _ in per_nerf)
+        starts, ends, weights, rgbs, bgs = [], [], [], [], []
+        for s, k in per_nerf:
+            st, en = s.starts / k, s.ends / k
+            last = en[..., -1:]
+            starts.append(_pad_samples(st, kmax, last[..., 0], -1) if st.shape[-1] < kmax else st)
+            ends.append(_pad_samples(en, kmax, last[..., 0], -1) if en.shape[-1] < kmax else en)
+            weights.append(_pad_samples(s.weights, kmax, 0.0, -1))
+            rgbs.append(_pad_samples(s.rgbs, kmax, 0.0, -2))
+            bgs.append(s.background_rgb)
+        starts_t, ends_t = torch.stack(starts), torch.stack(ends)
+        p, c, bg = torch.stack(weights), torch.stack(rgbs), torch.stack(bgs)
+        camera_d = blending.camera_to_origin_distances(origins, nerf_origins)  # [N, R]
+        tau = self.tau if n > 1 else None
+
+        methods = list(BLEND_METHODS) if self.config.render_all_methods else [self.blend_method]
+        if self.blend_method not in methods:
+            methods.append(self.blend_method)
+        render_level = [m for m in methods if m != "idw-sample"]
+        per_nerf_render = None
+        if render_level:
+            mids = 0.5 * (starts_t + ends_t)
+            rgb_i = blending.render_samples(p, c, bg).clamp(0.0, 1.0)  # [N, R, 3]
+            acc_i = p.sum(-1)
+            depth_i = median_depth(p, mids)
+            exp_i = expected_depth(p, mids)
+            per_nerf_render = (rgb_i, acc_i, depth_i, exp_i)
+
+        results: dict[str, dict[str, Tensor]] = {}
+        for method in methods:
+            if method == "idw-sample":
+                merged = blending.merge_samples(starts_t, ends_t, p, c)
+                d, d_bg = blending.merged_sample_distances(merged, origins, directions, nerf_origins)
+                out = blending.idw_sample_blend(
+                    merged,
+                    d,
+                    self.gamma,
+                    background_rgbs=bg,
+                    background_distances=d_bg,
+                    camera_distances=camera_d if tau is not None else None,
+                    tau=tau,
+                )
+                results[method] = {
+                    "rgb": out.rgb.clamp(0.0, 1.0),
+                    "accumulation": out.accumulation,
+                    "depth": median_depth(out.weights, _median_mids(merged)),
+                    "expected_depth": out.depth,
+                    "share": out.nerf_share,
+                }
+            else:
+                assert per_nerf_render is not None
+                rgb_i, acc_i, depth_i, exp_i = per_nerf_render
+                surface_d = None
+                if method == "idw-3d":
+                    pts = blending.expected_points(origins, directions, exp_i)
+                    surface_d = torch.linalg.vector_norm(pts - nerf_origins[:, None, :], dim=-1)
+                w = blending.image_blend_weights(
+                    method,
+                    camera_d,
+                    self.gamma,
+                    tau,
+                    surface_distances=surface_d,  # type: ignore[arg-type]
+                    reference=self.reference_nerf % n,
+                )
+                results[method] = {
+                    "rgb": blending.blend_renders(rgb_i, w),
+                    "accumulation": (w * acc_i).sum(0),
+                    "depth": (w * depth_i).sum(0),
+                    "expected_depth": (w * exp_i).sum(0),
+                    "share": w,
+                }
+
+        main = results[self.blend_method]
+        outputs = {
+            "rgb": main["rgb"],
+            "accumulation": main["accumulation"][..., None],
+            "depth": main["depth"][..., None],
+            "expected_depth": main["expected_depth"][..., None],
+        }
+        if self.config.share_outputs:
+            share = main["share"]  # [N, R]
+            for i in range(n):
+                outputs[f"share_{i}"] = share[i][..., None]
+            palette = _PALETTE.to(share)[torch.arange(n) % len(_PALETTE)]
+            outputs["nerf_share"] = (share.T @ palette).clamp(0.0, 1.0)
+        if self.config.render_all_methods:
+            for method, res in results.items():
+                outputs[f"rgb_{method.replace('-', '_')}"] = res["rgb"]
+        return outputs
+
+    # --- evaluation -------------------------------------------------------------------------------------------------
+
+    def _metrics(self, gt: Tensor, pred: Tensor) -> dict[str, float]:
+        gt_b = torch.moveaxis(gt, -1, 0)[None]
+        pred_b = torch.moveaxis(pred, -1, 0)[None]
+        return {
+            "psnr": float(self.psnr(pred_b, gt_b).item()),
+            "ssim": float(self.ssim(pred_b, gt_b)),  # type: ignore[arg-type]
+            "lpips": float(self.lpips(pred_b, gt_b)),
+        }
+
+    def get_image_metrics_and_images(
+        self, outputs: dict[str, Tensor], batch: dict[str, Tensor]
+    ) -> tuple[dict[str, float], dict[str, Tensor]]:
+        gt = batch["image"].to(self.device).float()
+        if gt.shape[-1] == 4:  # RGBA ground truth: on black, as nerfacto's "last_sample" does for metrics
+            gt = gt[..., :3] * gt[..., 3:]
+        pred = outputs["rgb"]
+        metrics = self._metrics(gt, pred)
+        if self.config.render_all_methods:
+            for method in BLEND_METHODS:
+                key = f"rgb_{method.replace('-', '_')}"
+                if key in outputs:
+                    for name, value in self._metrics(gt, outputs[key]).items():
+                        metrics[f"{name}_{method.replace('-', '_')}"] = value
+        images = {
+            "img": torch.cat([gt, pred], dim=1),
+            "accumulation": colormaps.apply_colormap(outputs["accumulation"]),
+            "depth": colormaps.apply_depth_colormap(outputs["depth"], accumulation=outputs["accumulation"]),
+        }
+        if "nerf_share" in outputs:
+            images["nerf_share"] = outputs["nerf_share"]
+        return metrics, images
+
+
+def fuse_models(
+    nerfs: Sequence[tuple[str, Model, Any]], config: NerfuserModelConfig | None = None, **overrides: Any
+) -> NerfuserModel:
+    """A fused model from already loaded sub-models ``(name, model, nerf_to_common 4x4)`` (tests, scripts).
+
+    ``overrides`` set config fields (e.g. ``blend_method="nearest"``, ``gamma=2.0``).
+    """
+    from nerfstudio.data.scene_box import SceneBox
+
+    config = config or NerfuserModelConfig()
+    for key, value in overrides.items():
+        if not hasattr(config, key):
+            raise TypeError(f"NerfuserModelConfig has no field {key!r}")
+        setattr(config, key, value)
+    device = next(iter(nerfs))[1].device if nerfs else torch.device("cpu")
+    model = config.setup(
+        scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])),
+        num_train_data=1,
+        metadata={"nerfuser_models": list(nerfs)},
+    )
+    return model.to(device).eval()
+
+
+__all__ = [
+    "ADAPTERS",
+    "NerfAdapter",
+    "NerfSamples",
+    "NerfactoAdapter",
+    "NerfuserModel",
+    "NerfuserModelConfig",
+    "fuse_models",
+    "make_adapter",
+    "map_rays",
+]
