@@ -24,14 +24,16 @@ Relative paths are relative to the spec file's folder. ``--data`` may also point
 
 Registration file
 -----------------
-All reading of it goes through :func:`read_registration`. Until ``nerfuser_ns/registration.py`` defines its own
-format, the accepted format is::
+All reading of it goes through :func:`read_registration`. It reads what ``ns-nerfuser-register``
+(:mod:`nerfuser_ns.registration`) writes (``kind: nerfuser_registration``; per NeRF ``name``, ``config``,
+``T_to_reference``), and a minimal hand-written form::
 
     {"nerfs": [{"name": "a", "config": "path/to/config.yml", "transform": <4x4 list>}, ...]}
 
-``transform`` maps points of that NeRF's frame (the normalised frame nerfstudio trained it in) into the common
-frame: ``p_common = T @ [p_nerf, 1]``, ``T = [[s R, t], [0, 0, 0, 1]]`` (the first NeRF's frame by default, i.e.
-its transform is the identity). Relative ``config`` paths are relative to the registration file's folder.
+``T_to_reference`` / ``transform`` maps points of that NeRF's frame (the normalised frame nerfstudio trained it in)
+into the common frame: ``p_common = T @ [p_nerf, 1]``, ``T = [[s R, t], [0, 0, 0, 1]]`` (the reference NeRF's frame,
+the first by default, so its transform is the identity). Relative ``config`` paths are relative to the registration
+file's folder.
 """
 
 from __future__ import annotations
@@ -200,7 +202,9 @@ def _same_file(a: Path, b: Path) -> bool:
 def read_registration(path: Path | str, check_runs: bool = True) -> list[NerfEntry]:
     """Every NeRF of a registration file: name, config.yml and its SIM(3) into the common frame.
 
-    The ONE place that knows the registration file's format (see the module docstring).
+    The ONE place that knows the registration file's format: ``ns-nerfuser-register``'s record
+    (``kind: nerfuser_registration``; per NeRF ``name``, ``config``, ``T_to_reference``) or the minimal
+    ``{"nerfs": [{name, config, transform}]}`` (see the module docstring).
 
     Args:
         path: the registration file.
@@ -210,9 +214,10 @@ def read_registration(path: Path | str, check_runs: bool = True) -> list[NerfEnt
         FusionSpecError: unreadable file, missing keys, bad transform (shape, non-finite, not a SIM(3)), missing run
             or duplicate names; one line naming the file and the entry.
     """
-    # TODO(registration): adapt to nerfuser_ns/registration.py's file format once it lands.
     path = Path(path).absolute()
     data = _read_json(path, "registration")
+    if data.get("kind", "nerfuser_registration") != "nerfuser_registration":
+        raise _err(path, f"not a registration file (kind {data.get('kind')!r})")
     nerfs = data.get("nerfs")
     if not isinstance(nerfs, list) or not nerfs:
         raise _err(path, "expected a non-empty list 'nerfs' of {name, config, transform}")
@@ -221,13 +226,16 @@ def read_registration(path: Path | str, check_runs: bool = True) -> list[NerfEnt
         where = f"{path}: nerfs[{i}]"
         if not isinstance(item, dict):
             raise FusionSpecError(_one_line(f"{where}: expected an object with name, config, transform"))
-        missing = [k for k in ("config", "transform") if k not in item]
+        key = "T_to_reference" if "T_to_reference" in item else "transform"
+        missing = [k for k in ("config", key) if k not in item]
         if missing:
             raise FusionSpecError(_one_line(f"{where}: missing {', '.join(missing)}"))
+        if item["config"] is None:
+            raise FusionSpecError(_one_line(f"{where}: registers no nerfstudio run (config is null); cannot fuse it"))
         config_path = _resolve(path.parent, item["config"], f"{where}.config")
         if check_runs:
             config_path = _check_run(config_path, f"{where}.config")
-        T = validate_sim3(item["transform"], f"{where}.transform")
+        T = validate_sim3(item[key], f"{where}.{key}")
         name = item.get("name") or f"nerf{i}"
         entries.append(NerfEntry(name=str(name), config_path=config_path, nerf_to_common=T))
     names = [e.name for e in entries]
@@ -253,21 +261,20 @@ def write_registration(path: Path | str, nerfs: list[NerfEntry]) -> Path:
 
 
 def run_registration(config_paths: list[Path], names: list[str], output: Path) -> list[NerfEntry]:
-    """Registers the runs (NeRFuser Sec. 3.2) and writes the registration file at ``output``.
+    """Registers the runs (NeRFuser Sec. 3.2, ``nerfuser_ns.registration`` with its default settings), writes the
+    registration file at ``output`` (its renders and SfM files in ``<output stem>_work/``) and reads it back.
 
-    TODO(registration): wire to nerfuser_ns.registration once it lands (its API is not known here yet).
+    For other settings, run ``ns-nerfuser-register`` yourself and name its output under ``registration``.
     """
+    from nerfuser_ns import registration
+
     try:
-        import nerfuser_ns.registration as registration  # noqa: F401
-    except ImportError:
-        registration = None
-    raise FusionSpecError(
-        _one_line(
-            f"{output}: no registration file; run `ns-nerfuser-register` on the {len(config_paths)} runs first and "
-            "write it there (or name an existing one under 'registration' in the fusion spec)"
-            + ("" if registration is None else " [automatic registration is not wired yet]")
-        )
-    )
+        registration.register_runs(config_paths, output, names=names, device="cpu")
+    except registration.RegistrationError as e:
+        raise FusionSpecError(
+            _one_line(f"{output}: automatic registration failed: {e} (run ns-nerfuser-register with other settings)")
+        ) from None
+    return read_registration(output)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
