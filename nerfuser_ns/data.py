@@ -649,6 +649,10 @@ class NerfuserTrainerConfig(TrainerConfig):
             _check_spec_only(data)
         except FusionSpecError as e:
             raise SystemExit(f"nerfuser: {e}") from None
+        data = Path(data).absolute()
+        self.pipeline.datamanager.data = data
+        if hasattr(self.pipeline.model, "fusion_spec"):
+            self.pipeline.model.fusion_spec = data  # so the model alone (runs.load_run) finds its sub-models
         super().save_config()
 
 

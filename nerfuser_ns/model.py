@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -287,6 +288,9 @@ class NerfuserModelConfig(ModelConfig):
     """Also output ``rgb_<method>`` for every method (``-`` as ``_``) and report their metrics in ns-eval."""
     eval_num_rays_per_chunk: int = 4096
     """Rays per forward pass when rendering images."""
+    fusion_spec: Path | None = None
+    """The fusion spec, read when the datamanager passes none (e.g. the model loaded alone by runs.load_run);
+    ns-train nerfuser records --data here."""
 
 
 class NerfuserModel(Model):
@@ -305,13 +309,14 @@ class NerfuserModel(Model):
         metadata = self.kwargs.get("metadata") or {}
         if metadata.get("nerfuser_models") is not None:
             entries = list(metadata["nerfuser_models"])
-        elif metadata.get("nerfuser") is not None:
+        elif metadata.get("nerfuser") is not None or self.config.fusion_spec is not None:
+            from nerfuser_ns.data import read_fusion_spec
             from nerfuser_ns.runs import load_run
 
-            spec = metadata["nerfuser"]
+            spec = metadata.get("nerfuser") or read_fusion_spec(self.config.fusion_spec, register=False)
             entries = [(n.name, load_run(n.config_path, device="cpu").model, n.nerf_to_common) for n in spec.nerfs]
         else:
-            raise ValueError("nerfuser: no sub-models; the datamanager passes them as metadata['nerfuser']")
+            raise ValueError("nerfuser: no sub-models; pass the fusion spec (--data, or --pipeline.model.fusion-spec)")
         if not entries:
             raise ValueError("nerfuser: no sub-models to fuse")
         self.nerf_names = [str(e[0]) for e in entries]

@@ -1,0 +1,316 @@
+"""The fused model on tiny CPU-trained nerfacto runs: exactness properties, limits, and the nerfstudio commands."""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from nerfstudio.cameras.rays import RayBundle
+
+from nerfuser_ns import runs, scenes, sim3
+from nerfuser_ns.blending import BLEND_METHODS
+from nerfuser_ns.data import NerfEntry, write_fusion_spec, write_registration
+from nerfuser_ns.model import NerfuserModel, fuse_models, map_rays
+from nerfuser_ns.training import train
+
+pytestmark = pytest.mark.slow
+
+BIN = Path(sys.executable).parent
+OUTPUTS = ("rgb", "depth", "accumulation")
+# A camera in the NeRF's own frame, looking at the scene centre along -z.
+C2W = np.array([[1.0, 0, 0, 0.05], [0, 1, 0, -0.02], [0, 0, 1, 0.6], [0, 0, 0, 1]])
+INTR = dict(fx=20, fy=20, cx=10, cy=8, width=20, height=16)
+# A SIM(3) far from the identity: scale 3.7, a generic rotation, a translation.
+T_FAR = sim3.make_sim3(
+    scenes.yaw_rotation(0.7) @ np.array([[1, 0, 0], [0, np.cos(0.4), -np.sin(0.4)], [0, np.sin(0.4), np.cos(0.4)]]),
+    np.array([0.4, -1.2, 2.0]),
+    3.7,
+)
+
+
+def cams(c2w: np.ndarray):
+    return runs.make_cameras(np.asarray(c2w)[None], **INTR)
+
+
+def render(model, c2w: np.ndarray, outputs=OUTPUTS) -> dict[str, torch.Tensor]:
+    return runs.render_views(model, cams(c2w), outputs=outputs, progress=False)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    layout = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
+    out = tmp_path_factory.mktemp("scene") / "scene"
+    scenes.write_scene(layout, out, supersample=1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def trained(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("outputs")
+    result = train(
+        data=scene / "capture_a", output_dir=out, experiment_name="tiny", max_num_iterations=60, seed=0, tiny=True
+    )
+    return runs.load_run(result.config_path)
+
+
+@pytest.fixture(scope="module")
+def ref(trained) -> dict[str, torch.Tensor]:
+    """The NeRF's own render (nerfacto's get_outputs_for_camera) from C2W in its frame."""
+    return render(trained.model, C2W)
+
+
+def close(a: torch.Tensor, b: torch.Tensor, atol: float) -> None:
+    torch.testing.assert_close(a, b, rtol=0, atol=atol)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Exactness
+
+
+def test_one_nerf_identity_equals_its_own_render(trained, ref):
+    for method in BLEND_METHODS:
+        fused = fuse_models([("a", trained.model, np.eye(4))], blend_method=method)
+        out = render(fused, C2W, OUTPUTS + ("expected_depth", "share_0", "nerf_share"))
+        assert out["rgb"].shape == (1, 16, 20, 3) and out["depth"].shape == (1, 16, 20, 1)
+        close(out["rgb"], ref["rgb"], 1e-6)
+        close(out["accumulation"], ref["accumulation"], 1e-6)
+        close(out["depth"], ref["depth"], 1e-5)
+        close(out["share_0"], torch.ones_like(out["share_0"]), 1e-6)
+
+
+def test_two_identity_copies_equal_the_single_render_for_any_gamma(trained, ref):
+    fused = fuse_models([("a", trained.model, np.eye(4)), ("b", trained.model, np.eye(4))])
+    for gamma in (0.0, 0.3, 5.0, 80.0, float("inf")):
+        for method in BLEND_METHODS:
+            fused.gamma, fused.blend_method = gamma, method
+            out = render(fused, C2W, OUTPUTS + ("share_0", "share_1"))
+            close(out["rgb"], ref["rgb"], 1e-5)
+            close(out["accumulation"], ref["accumulation"], 1e-5)
+            close(out["depth"], ref["depth"], 1e-4)
+            close(out["share_0"] + out["share_1"], torch.ones_like(out["share_0"]), 1e-5)
+
+
+def test_copy_under_a_far_sim3_renders_like_the_original(trained, ref):
+    """NeRF frame -> common frame by T (scale 3.7): the world camera T G S^-1 sees what the original sees from G."""
+    fused = fuse_models([("copy", trained.model, T_FAR)])
+    world_c2w = sim3.transform_poses(T_FAR, C2W)
+    out = render(fused, world_c2w, OUTPUTS + ("expected_depth",))
+    close(out["rgb"], ref["rgb"], 2e-4)
+    close(out["accumulation"], ref["accumulation"], 2e-4)
+    # depths are common-frame lengths: 3.7 x the NeRF's own
+    torch.testing.assert_close(out["depth"], 3.7 * ref["depth"], rtol=1e-4, atol=1e-4)
+
+
+def test_map_rays_scales_distances_and_keeps_points():
+    T = torch.tensor(T_FAR, dtype=torch.float32)
+    o = torch.tensor([[0.3, -0.2, 1.0], [2.0, 0.5, -1.0]])
+    d = torch.nn.functional.normalize(torch.tensor([[0.1, 0.2, -1.0], [-1.0, 0.3, 0.2]]), dim=-1)
+    bundle = RayBundle(
+        origins=o,
+        directions=d,
+        pixel_area=torch.full((2, 1), 1e-3),
+        nears=torch.full((2, 1), 0.5),
+        fars=torch.full((2, 1), 4.0),
+        camera_indices=torch.tensor([[7], [0]]),
+    )
+    mapped, k = map_rays(bundle, torch.linalg.inv(T), num_train_data=5)
+    torch.testing.assert_close(k, torch.full_like(k, 1 / 3.7))
+    t = 1.7
+    p_common = o + t * d
+    p_nerf = (p_common - T[:3, 3]) @ torch.linalg.inv(T[:3, :3]).T
+    torch.testing.assert_close(mapped.origins + (t * k) * mapped.directions, p_nerf, atol=1e-5, rtol=0)
+    torch.testing.assert_close(mapped.directions.norm(dim=-1), torch.ones(2))
+    torch.testing.assert_close(mapped.nears, 0.5 * k)
+    torch.testing.assert_close(mapped.fars, 4.0 * k)
+    assert mapped.camera_indices.tolist() == [[4], [0]]  # clamped into the sub-model's range
+    torch.testing.assert_close(mapped.pixel_area, bundle.pixel_area)  # a solid angle: similarity-invariant
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Blending limits through the model
+
+
+@pytest.fixture(scope="module")
+def pair(trained):
+    """NeRF A at the identity; B: A with its colour head perturbed (another NeRF), moved by a small translation."""
+    model_b = copy.deepcopy(trained.model)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in model_b.field.mlp_head.parameters():
+            p.add_(0.5 * torch.randn(p.shape, generator=gen))
+    T_b = sim3.make_sim3(np.eye(3), np.array([0.25, 0.0, 0.0]), 1.0)
+    renders = {
+        "a": render(fuse_models([("a", trained.model, np.eye(4))]), C2W),
+        "b": render(fuse_models([("b", model_b, T_b)]), C2W),
+    }
+    fused = fuse_models([("a", trained.model, np.eye(4)), ("b", model_b, T_b)], tau=None)
+    return fused, renders
+
+
+def test_gamma_zero_is_the_mean_and_shares_are_normalised(pair):
+    fused, single = pair
+    mean = 0.5 * (single["a"]["rgb"] + single["b"]["rgb"])
+    for method in ("idw-sample", "idw-2d", "idw-3d"):
+        fused.blend_method, fused.gamma = method, 0.0
+        out = render(fused, C2W, OUTPUTS + ("share_0", "share_1"))
+        close(out["rgb"], mean, 1e-5)
+        close(out["share_0"], torch.full_like(out["share_0"], 0.5), 1e-5)
+    assert (single["a"]["rgb"] - single["b"]["rgb"]).abs().mean() > 0.02  # the check is not vacuous
+    for method in BLEND_METHODS:
+        for gamma in (1.0, 5.0, float("inf")):
+            fused.blend_method, fused.gamma = method, gamma
+            out = render(fused, C2W, ("share_0", "share_1", "accumulation"))
+            close(out["share_0"] + out["share_1"], torch.ones_like(out["share_0"]), 1e-5)
+            assert out["accumulation"].min() >= 0 and out["accumulation"].max() <= 1 + 1e-5
+
+
+def test_gamma_infinity_is_nearest_and_large_gamma_converges(pair):
+    fused, single = pair
+    c2w = C2W.copy()
+    c2w[:3, 3] = [-0.3, 0.0, 0.6]  # nearer to A's origin (0) than to B's (0.25, 0, 0)
+    a_here = render(fuse_models([("a", fused.nerfs.models[0], np.eye(4))]), c2w)
+    fused.gamma = float("inf")
+    fused.blend_method = "idw-2d"
+    close(render(fused, c2w)["rgb"], a_here["rgb"], 1e-6)
+    fused.blend_method = "idw-sample"
+    inf = render(fused, c2w, ("rgb", "share_0"))
+    # far samples (up to nerfacto's far plane, 1000) are almost equidistant from both origins (relative difference
+    # ~2.5e-4), so the limit is reached only for gamma >> 1e4
+    fused.gamma = 1e7
+    big = render(fused, c2w, ("rgb", "share_0"))
+    close(big["rgb"], inf["rgb"], 1e-4)
+    # the distance test (any ratio > 1 fails it) falls back to the camera's nearest NeRF: exactly A's render
+    fused.gamma, fused.tau = 5.0, 1.0
+    close(render(fused, c2w)["rgb"], a_here["rgb"], 1e-5)
+    fused.tau = None
+
+
+def test_model_is_frozen_and_its_checkpoint_holds_no_sub_model(trained):
+    fused = fuse_models([("a", trained.model, np.eye(4)), ("b", trained.model, T_FAR)])
+    assert fused.get_param_groups() == {}
+    assert sum(p.numel() for p in fused.parameters()) == 0  # only nerfstudio's empty device indicator
+    keys = list(fused.state_dict())
+    assert not any(k.startswith("nerfs") or "field." in k for k in keys), keys
+    fused.train()
+    assert not fused.nerfs.models[0].training  # sub-models stay in eval mode
+
+
+def test_render_time_settings_from_the_environment(trained, monkeypatch):
+    monkeypatch.setenv("NERFUSER_BLEND_METHOD", "nearest")
+    monkeypatch.setenv("NERFUSER_GAMMA", "2.5")
+    monkeypatch.setenv("NERFUSER_TAU", "none")
+    fused = fuse_models([("a", trained.model, np.eye(4))])
+    assert (fused.blend_method, fused.gamma, fused.tau) == ("nearest", 2.5, None)
+    monkeypatch.setenv("NERFUSER_BLEND_METHOD", "idw-4d")
+    with pytest.raises(ValueError, match="unknown blend method 'idw-4d'"):
+        fuse_models([("a", trained.model, np.eye(4))])
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# ns-train / ns-eval / ns-render
+
+
+def _run(cmd: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
+    full_env = {**os.environ, **(env or {})}
+    proc = subprocess.run(cmd, cwd=cwd, env=full_env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, f"{cmd[0]} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    return proc
+
+
+@pytest.fixture(scope="module")
+def fused_run(trained, scene, tmp_path_factory) -> Path:
+    """Two runs (A, and a copy B of it registered under T_FAR) fused by ns-train, with the scene's test images."""
+    root = tmp_path_factory.mktemp("fusion")
+    b_dir = root / "runs" / "b" / "nerfacto-cpu" / "run"
+    shutil.copytree(trained.config_path.parent, b_dir)
+    gt = json.loads((scene / "ground_truth.json").read_text())
+    capture_to_world = np.array(gt["captures"][0]["capture_to_world"])
+    world_to_common = trained.data_to_nerf @ np.linalg.inv(capture_to_world)  # the test capture is world-posed
+    write_registration(
+        root / "registration.json",
+        [NerfEntry("a", trained.config_path, np.eye(4)), NerfEntry("b", b_dir / "config.yml", T_FAR)],
+    )
+    spec = write_fusion_spec(
+        root / "fusion.json",
+        [trained.config_path, b_dir / "config.yml"],
+        registration="registration.json",
+        test_data=scene / "test",
+        test_to_common=world_to_common,
+    )
+    _run(
+        [
+            str(BIN / "ns-train"),
+            "nerfuser",
+            "--data",
+            str(spec),
+            "--output-dir",
+            str(root / "outputs"),
+            "--experiment-name",
+            "fused",
+            "--timestamp",
+            "run",
+            "--pipeline.model.render-all-methods",
+            "True",
+        ],
+        cwd=root,
+    )
+    config = root / "outputs" / "fused" / "nerfuser" / "run" / "config.yml"
+    assert config.is_file()
+    return config
+
+
+def test_ns_train_writes_a_normal_run(fused_run):
+    run_dir = fused_run.parent
+    ckpts = list((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
+    assert len(ckpts) == 1 and ckpts[0].stat().st_size < 100_000  # no sub-model weights inside
+    assert (run_dir / "dataparser_transforms.json").is_file()
+    config = yaml.load(fused_run.read_text(), Loader=yaml.Loader)
+    assert config.method_name == "nerfuser" and config.pipeline.model.blend_method == "idw-sample"
+    loaded = runs.load_run(fused_run)  # the fused run loads like any other
+    assert isinstance(loaded.model, NerfuserModel) and loaded.model.num_nerfs == 2
+
+
+def test_ns_eval_reports_every_method(fused_run, tmp_path):
+    out = tmp_path / "eval.json"
+    _run(
+        [str(BIN / "ns-eval"), "--load-config", str(fused_run), "--output-path", str(out)],
+        cwd=tmp_path,
+        env={"NERFUSER_BLEND_METHOD": "idw-2d"},
+    )
+    results = json.loads(out.read_text())["results"]
+    for method in BLEND_METHODS:
+        key = method.replace("-", "_")
+        assert np.isfinite(results[f"psnr_{key}"]) and np.isfinite(results[f"ssim_{key}"]), results
+    assert results["psnr"] == pytest.approx(results["psnr_idw_2d"])  # the environment chose the main method
+    assert results["psnr_nerf"] > 12  # the registered test views see the scene, not noise
+
+
+def test_ns_render_renders_every_method(fused_run, tmp_path):
+    names = ["rgb", "depth", "nerf_share", "share_1"] + [f"rgb_{m.replace('-', '_')}" for m in BLEND_METHODS]
+    _run(
+        [
+            str(BIN / "ns-render"),
+            "dataset",
+            "--load-config",
+            str(fused_run),
+            "--output-path",
+            str(tmp_path / "r"),
+            "--split",
+            "test",
+            "--rendered-output-names",
+            *names,
+        ],
+        cwd=tmp_path,
+    )
+    for name in names:
+        files = sorted((tmp_path / "r" / "test" / name).glob("*"))
+        assert len(files) == 2, name
