@@ -1,0 +1,313 @@
+"""Fusion spec and registration reading/validation, and the nerfuser datamanager (no NeRF training needed)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from nerfuser_ns.method_configs.nerfacto_cpu import nerfacto_cpu_config
+from nerfuser_ns.method_configs.nerfuser import nerfuser_config
+from PIL import Image
+
+from nerfuser_ns import data as fdata
+from nerfuser_ns import sim3
+from nerfuser_ns.data import FusionSpecError, NerfEntry, read_fusion_spec, read_registration
+
+T_B = sim3.make_sim3(np.eye(3)[[1, 0, 2]] * [[1], [-1], [1]], np.array([1.0, 2.0, 0.5]), 0.4)
+
+
+def fake_run(root: Path, name: str) -> Path:
+    """A run folder that parses as a nerfstudio run (config.yml + a checkpoint file); nothing is trained."""
+    config = nerfacto_cpu_config(10)
+    config.experiment_name, config.timestamp, config.output_dir = name, "run", root
+    run_dir = root / name / "nerfacto-cpu" / "run"
+    (run_dir / "nerfstudio_models").mkdir(parents=True)
+    (run_dir / "config.yml").write_text(yaml.dump(config))
+    (run_dir / "nerfstudio_models" / "step-000000009.ckpt").write_bytes(b"not loaded by these tests")
+    return run_dir / "config.yml"
+
+
+def write_dataset(folder: Path, c2ws: list[np.ndarray], w: int = 8, h: int = 6) -> Path:
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for i, c2w in enumerate(c2ws):
+        Image.fromarray(np.full((h, w, 3), 40 * i, dtype=np.uint8)).save(folder / "images" / f"f{i}.png")
+        frames.append({"file_path": f"images/f{i}.png", "transform_matrix": np.asarray(c2w).tolist()})
+    meta = {"camera_model": "OPENCV", "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "w": w, "h": h, "frames": frames}
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return folder
+
+
+@pytest.fixture
+def two_runs(tmp_path) -> tuple[Path, Path]:
+    return fake_run(tmp_path / "outputs", "a"), fake_run(tmp_path / "outputs", "b")
+
+
+def registration_file(path: Path, entries: list[dict]) -> Path:
+    path.write_text(json.dumps({"nerfs": entries}))
+    return path
+
+
+def snapshot(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Reading
+
+
+def test_spec_with_minimal_registration(tmp_path, two_runs):
+    a, b = two_runs
+    registration_file(
+        tmp_path / "reg.json",
+        [
+            {"name": "A", "config": str(a), "transform": np.eye(4).tolist()},
+            {"name": "B", "config": str(b), "transform": T_B.tolist()},
+        ],
+    )
+    # runs listed in the other order, relative paths, one renamed: the spec's order and names win
+    spec_path = fdata.write_fusion_spec(
+        tmp_path / "fusion.json",
+        [b.relative_to(tmp_path), a.relative_to(tmp_path)],
+        registration="reg.json",
+        names=["bee", "A"],
+    )
+    spec = read_fusion_spec(spec_path)
+    assert [n.name for n in spec.nerfs] == ["bee", "A"]
+    assert spec.nerfs[0].config_path == b and spec.nerfs[1].config_path == a
+    np.testing.assert_allclose(spec.nerfs[0].nerf_to_common, T_B)
+    assert spec.nerfs[0].scale == pytest.approx(0.4)
+    np.testing.assert_allclose(spec.origins[0], [1.0, 2.0, 0.5])
+    assert spec.test_data is None and spec.registration_path == tmp_path / "reg.json"
+    # a folder holding fusion.json, and the registration file itself, work as --data too
+    assert [n.name for n in read_fusion_spec(tmp_path).nerfs] == ["bee", "A"]
+    assert [n.name for n in read_fusion_spec(tmp_path / "reg.json").nerfs] == ["A", "B"]
+
+
+def test_registration_record_of_ns_nerfuser_register(tmp_path, two_runs):
+    """The record nerfuser_ns.registration writes: kind, T_to_reference (preferred over the 'transform' alias)."""
+    a, b = two_runs
+    record = {
+        "format_version": 1,
+        "kind": "nerfuser_registration",
+        "reference": {"index": 0, "name": "a"},
+        "nerfs": [
+            {"name": "a", "config": str(a), "T_to_reference": np.eye(4).tolist(), "scale_to_reference": 1.0},
+            {"name": "b", "config": str(b), "T_to_reference": T_B.tolist(), "transform": np.eye(4).tolist()},
+        ],
+        "pairs": [],
+    }
+    (tmp_path / "registration.json").write_text(json.dumps(record))
+    entries = read_registration(tmp_path / "registration.json")
+    assert [e.name for e in entries] == ["a", "b"]
+    np.testing.assert_allclose(entries[1].nerf_to_common, T_B)
+    spec = read_fusion_spec(fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b]))  # default registration.json
+    np.testing.assert_allclose(spec.transforms[1], T_B)
+
+
+def test_single_run_needs_no_registration(tmp_path, two_runs):
+    spec = read_fusion_spec(fdata.write_fusion_spec(tmp_path / "fusion.json", [two_runs[0]]))
+    assert len(spec.nerfs) == 1 and spec.registration_path is None
+    np.testing.assert_array_equal(spec.nerfs[0].nerf_to_common, np.eye(4))
+
+
+def test_missing_registration_runs_registration(tmp_path, two_runs, monkeypatch):
+    """No registration file and several runs: nerfuser_ns.registration.register_runs is called and its file read."""
+    import nerfuser_ns.registration as registration
+
+    calls = []
+
+    def fake_register_runs(config_paths, output, names=None, device="cpu", **kwargs):
+        calls.append((list(config_paths), Path(output), list(names)))
+        entries = [NerfEntry(n, Path(c), np.eye(4)) for n, c in zip(names, config_paths, strict=True)]
+        fdata.write_registration(output, entries)
+        return {}
+
+    monkeypatch.setattr(registration, "register_runs", fake_register_runs)
+    spec_path = fdata.write_fusion_spec(tmp_path / "fusion.json", list(two_runs))
+    with pytest.raises(FusionSpecError, match="no registration file at .*run ns-nerfuser-register first"):
+        read_fusion_spec(spec_path, register=False)
+    assert not calls
+    spec = read_fusion_spec(spec_path)
+    assert calls == [(list(two_runs), tmp_path / "registration.json", ["nerf0", "nerf1"])]
+    assert [n.config_path for n in spec.nerfs] == list(two_runs)
+
+    def failing(*args, **kwargs):
+        raise registration.RegistrationError("nerf1: only 2 of 32 views registered")
+
+    (tmp_path / "registration.json").unlink()
+    monkeypatch.setattr(registration, "register_runs", failing)
+    with pytest.raises(FusionSpecError, match="automatic registration failed: nerf1: only 2 of 32"):
+        read_fusion_spec(spec_path)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Bad specs: one clear line, nothing written
+
+
+def _bad_cases(tmp_path: Path, a: Path, b: Path) -> list[tuple[str, dict | str, dict | None]]:
+    other = fake_run(tmp_path / "elsewhere", "c")
+    eye = np.eye(4).tolist()
+    shear = np.eye(4)
+    shear[0, 1] = 0.3
+    nan = np.eye(4)
+    nan[1, 3] = np.nan
+    reflect = np.diag([1.0, 1.0, -1.0, 1.0])
+
+    def reg(t_b, b_path=b) -> dict:
+        return {
+            "nerfs": [
+                {"name": "a", "config": str(a), "transform": eye},
+                {"name": "b", "config": str(b_path), "transform": t_b},
+            ]
+        }
+
+    spec = {"runs": [str(a), str(b)], "registration": "reg.json"}
+    return [
+        ("missing.*config.yml: no such file", {"runs": [str(a), str(tmp_path / "missing" / "config.yml")]}, None),
+        ("not in the registration", spec, reg(eye, b_path=other)),
+        ("also registers runs the spec does not list", {"runs": [str(a)], "registration": "reg.json"}, reg(eye)),
+        (r"transform: expected a 4x4 \(or 3x4\) matrix, got shape \(3, 3\)", spec, reg(np.eye(3).tolist())),
+        ("transform: has non-finite values", spec, reg(json.loads(json.dumps(nan.tolist())))),
+        ("not a scaled rotation", spec, reg(shear.tolist())),
+        ("not a similarity", spec, reg(reflect.tolist())),
+        ("last row must be", spec, reg([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]])),
+        ("not a numeric 4x4 matrix", spec, reg("identity")),
+        ("missing transform", spec, {"nerfs": [{"name": "a", "config": str(a)}]}),
+        ("unknown keys", {"runs": [str(a)], "regsitration": "reg.json"}, None),
+        ("not a readable JSON fusion spec", "{not json", None),
+        ("no registration file at", {"runs": [str(a), str(b)]}, None),
+        ("test_data .* is not a nerfstudio dataset", {"runs": [str(a)], "test_data": str(tmp_path)}, None),
+        ("test_to_common: has non-finite values", {"runs": [str(a)], "test_to_common": nan.tolist()}, None),
+        (
+            "duplicate NeRF names",
+            spec,
+            {
+                "nerfs": [
+                    {"name": "x", "config": str(a), "transform": eye},
+                    {"name": "x", "config": str(b), "transform": eye},
+                ]
+            },
+        ),
+    ]
+
+
+def test_bad_specs_give_one_clear_line_and_write_nothing(tmp_path, two_runs):
+    a, b = two_runs
+    cases = _bad_cases(tmp_path, a, b)
+    for i, (pattern, spec, reg) in enumerate(cases):
+        folder = tmp_path / f"case{i}"
+        folder.mkdir()
+        (folder / "fusion.json").write_text(spec if isinstance(spec, str) else json.dumps(spec))
+        if reg is not None:
+            (folder / "reg.json").write_text(json.dumps(reg))
+        before = snapshot(tmp_path)
+        with pytest.raises(FusionSpecError, match=pattern) as info:
+            read_fusion_spec(folder / "fusion.json", register=False)
+        message = str(info.value)
+        assert "\n" not in message, message
+        assert str(folder) in message, message
+        assert snapshot(tmp_path) == before, pattern
+
+
+def test_ns_train_with_a_bad_spec_writes_no_run(tmp_path, two_runs):
+    a, b = two_runs
+    reg = {
+        "nerfs": [
+            {"name": "a", "config": str(a), "transform": np.eye(4).tolist()},
+            {"name": "b", "config": str(b), "transform": [[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]},
+        ]
+    }
+    (tmp_path / "reg.json").write_text(json.dumps(reg))
+    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b], registration="reg.json")
+    # the trainer config refuses before writing config.yml
+    config = nerfuser_config()
+    config.data, config.output_dir = spec, tmp_path / "out"
+    config.set_timestamp()
+    with pytest.raises(SystemExit, match=r"^nerfuser: .*reg\.json: nerfs\[1\]\.transform: expected a 4x4"):
+        config.save_config()
+    assert not (tmp_path / "out").exists()
+    # and so does the real command
+    proc = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "ns-train"),
+            "nerfuser",
+            "--data",
+            str(spec),
+            "--output-dir",
+            str(tmp_path / "out"),
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ},
+    )
+    assert proc.returncode != 0
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("nerfuser: ") and "expected a 4x4 (or 3x4) matrix" in last, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Datamanager
+
+
+def test_datamanager_poses_test_images_in_the_common_frame(tmp_path, two_runs):
+    a, b = two_runs
+    registration_file(
+        tmp_path / "registration.json",
+        [{"config": str(a), "transform": np.eye(4).tolist()}, {"config": str(b), "transform": T_B.tolist()}],
+    )
+    c2ws = [sim3.make_sim3(np.eye(3), np.array([0.1 * i, 0.0, 2.0]), 1.0) for i in range(3)]
+    write_dataset(tmp_path / "test", c2ws)
+    world_to_common = sim3.make_sim3(scene_yaw(0.3), np.array([0.5, -0.1, 0.2]), 2.5)
+    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b], test_data="test", test_to_common=world_to_common)
+    dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
+    assert len(dm.train_dataset) == 3 and len(dm.eval_dataset) == 3
+    expected = sim3.transform_poses(world_to_common, np.stack(c2ws))[:, :3, :4]
+    np.testing.assert_allclose(dm.eval_dataset.cameras.camera_to_worlds.numpy(), expected, atol=1e-5)
+    # camera rotations stay orthonormal (the scale went into the positions only)
+    R = dm.eval_dataset.cameras.camera_to_worlds[:, :3, :3]
+    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3).expand(3, 3, 3), atol=1e-5, rtol=0)
+    assert dm.train_dataset.metadata[fdata.METADATA_KEY].nerfs[1].name == "nerf1"
+    cams = list(dm.fixed_indices_eval_dataloader)
+    assert len(cams) == 3 and cams[2][1]["image"].shape == (6, 8, 3)
+    camera, batch = dm.next_eval_image(0)
+    assert batch["image"].shape == (6, 8, 3)
+    with pytest.raises(RuntimeError, match="nothing to train"):
+        dm.next_train(0)
+    # the scene box holds both NeRFs' [-1, 1] cubes
+    aabb = dm.train_dataset.scene_box.aabb
+    assert torch.all(aabb[0] <= torch.tensor([-1.0, -1.0, -1.0])) and torch.all(aabb[1] >= torch.tensor(1.0))
+
+
+def test_datamanager_without_test_images(tmp_path, two_runs):
+    registration_file(
+        tmp_path / "registration.json",
+        [
+            {"config": str(two_runs[0]), "transform": np.eye(4).tolist()},
+            {"config": str(two_runs[1]), "transform": T_B.tolist()},
+        ],
+    )
+    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", list(two_runs))
+    dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="inference")
+    assert dm.eval_dataset is None
+    assert len(dm.train_dataset) == 2  # placeholder cameras at the NeRF origins, for the viewer
+    np.testing.assert_allclose(dm.train_dataset.cameras.camera_to_worlds[1, :, 3].numpy(), T_B[:3, 3], atol=1e-6)
+    assert dm.train_dataset[1]["image"].shape == (48, 64, 3)
+    with pytest.raises(RuntimeError, match="has no test images; add 'test_data'"):
+        dm.fixed_indices_eval_dataloader  # noqa: B018
+
+
+def scene_yaw(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
