@@ -428,6 +428,7 @@ class NerfuserModel(Model):
         return out
 
     def get_outputs(self, ray_bundle: RayBundle) -> dict[str, Tensor]:
+        self._check_settings()  # they may have been changed since (attributes, viewer)
         shape = ray_bundle.origins.shape[:-1]
         flat = ray_bundle.flatten() if len(shape) != 1 else ray_bundle
         outputs = self._blend(flat, self.nerf_samples(flat))
@@ -445,8 +446,8 @@ class NerfuserModel(Model):
         for s, k in per_nerf:
             st, en = s.starts / k, s.ends / k
             last = en[..., -1:]
-            starts.append(_pad_samples(st, kmax, last[..., 0], -1) if st.shape[-1] < kmax else st)
-            ends.append(_pad_samples(en, kmax, last[..., 0], -1) if en.shape[-1] < kmax else en)
+            starts.append(_pad_samples(st, kmax, last[..., 0], -1))
+            ends.append(_pad_samples(en, kmax, last[..., 0], -1))
             weights.append(_pad_samples(s.weights, kmax, 0.0, -1))
             rgbs.append(_pad_samples(s.rgbs, kmax, 0.0, -2))
             bgs.append(s.background_rgb)
