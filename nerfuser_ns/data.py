@@ -267,10 +267,11 @@ def run_registration(config_paths: list[Path], names: list[str], output: Path) -
     For other settings, run ``ns-nerfuser-register`` yourself and name its output under ``registration``.
     """
     from nerfuser_ns import registration
+    from nerfuser_ns.runs import RunLoadError
 
     try:
         registration.register_runs(config_paths, output, names=names, device="cpu")
-    except registration.RegistrationError as e:
+    except (registration.RegistrationError, RunLoadError) as e:
         raise FusionSpecError(
             _one_line(f"{output}: automatic registration failed: {e} (run ns-nerfuser-register with other settings)")
         ) from None
