@@ -45,6 +45,8 @@ def install(fast_path: bool | None = None) -> None:
     set_fast_path(fast_path)
     if _installed:
         return
+    # nerfstudio 1.1.5 indexes with lists on every camera-ray call; torch warns each time and buries the output
+    warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing")
     _allow_nerfstudio_checkpoints()
     _make_lpips_lazy()
     _patch_hash_encoding()
