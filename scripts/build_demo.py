@@ -17,9 +17,11 @@ from __future__ import annotations
 import json
 import os
 import platform
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import tyro
 
@@ -32,6 +34,10 @@ class BuildDemoConfig:
     """Where the generated ground-truth scene goes (not shipped: it regenerates in under a minute)."""
     runs_dir: Path = Path("demo/runs")
     """Where the trained runs go (shipped with the repo)."""
+    layout: Literal["object-centric", "street"] = "object-centric"
+    """Scene layout (the demo is object-centric; benchmarks also build street scenes)."""
+    num_captures: int = 3
+    """Training captures of a street scene."""
     seed: int = 0
     """Scene seed (the layout, textures and cameras)."""
     train_seed: int = 42
@@ -40,18 +46,30 @@ class BuildDemoConfig:
     """Training steps per NeRF."""
     scene_only: bool = False
     """Only generate the scene (used by the demo when shipped NeRFs exist)."""
-    captures: tuple[str, ...] = ("capture_a", "capture_b")
-    """Which captures to train (the report keeps the entries of the others)."""
+    captures: tuple[str, ...] = ()
+    """Which captures to train (default: all of the scene's; the report keeps the entries of the others)."""
     threads: int = 0
     """torch CPU threads (0: all cores). Use 1 when other jobs share the CPU: oversubscribed OpenMP threads slow
     torch down 5-9x."""
 
 
-def generate_scene(scene_dir: Path, seed: int) -> None:
-    from nerfuser_ns.scenes import make_layout, write_scene
+def generate_scene(scene_dir: Path, seed: int, layout_name: str = "object-centric", num_captures: int = 3) -> list[str]:
+    """Generate the scene unless the same one is already there; returns its capture names."""
+    import json
 
-    layout = make_layout("object-centric", seed=seed, num_views=64, num_test_views=12, width=192, height=144)
-    write_scene(layout, scene_dir, supersample=2)
+    from nerfuser_ns.scenes import ground_truth_dict, make_layout, write_scene
+
+    params = dict(seed=seed, num_views=64, num_test_views=12, width=192, height=144)
+    if layout_name == "street":
+        params["num_captures"] = num_captures
+    layout = make_layout(layout_name, **params)
+    gt_path = scene_dir / "ground_truth.json"
+    # the scene is deterministic: skip the render when the recorded ground truth is identical
+    if not gt_path.is_file() or json.loads(gt_path.read_text()) != json.loads(
+        json.dumps(ground_truth_dict(layout, supersample=2))
+    ):
+        write_scene(layout, scene_dir, supersample=2)
+    return [c.name for c in layout.captures]
 
 
 def slim_checkpoint(path: Path) -> None:
@@ -70,7 +88,7 @@ def main(cfg: BuildDemoConfig) -> None:
 
     console = Console()
     t0 = time.perf_counter()
-    generate_scene(cfg.scene_dir, cfg.seed)
+    capture_names = generate_scene(cfg.scene_dir, cfg.seed, cfg.layout, cfg.num_captures)
     console.print(f"scene: {cfg.scene_dir} ({time.perf_counter() - t0:.1f} s)")
     if cfg.scene_only:
         return
@@ -83,8 +101,8 @@ def main(cfg: BuildDemoConfig) -> None:
     out = cfg.runs_dir / "train_report.json"
     report: dict = json.loads(out.read_text()) if out.is_file() else {"runs": {}}
     report["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__}
-    report["command"] = "python scripts/build_demo.py"
-    for name in cfg.captures:
+    report["command"] = "python scripts/build_demo.py " + " ".join(sys.argv[1:])
+    for name in cfg.captures or capture_names:
         result = train(
             data=cfg.scene_dir / name,
             output_dir=cfg.runs_dir,
