@@ -810,10 +810,12 @@ def register(
     for i, (r, vs, est) in enumerate(zip(renderers, views, estimates, strict=True)):
         registered = sum(1 for n, kept in zip(vs.image_names, vs.kept, strict=True) if kept and n in sfm.c2w)
         rot, cen = est.rot_residuals_deg[est.used], est.centre_residuals[est.used]
+        config_path = getattr(r, "config_path", None)
         nerfs.append({
             "name": r.name,
-            "config": str(getattr(r, "config_path", "")) or None,
+            "config": None if config_path is None else str(Path(config_path).absolute()),
             "T_to_reference": _mat(T_to_ref[i]),
+            "transform": _mat(T_to_ref[i]),  # alias read by nerfuser_ns.data (p_reference = T @ [p_nerf, 1])
             "scale_to_reference": float(sim3.decompose_sim3(T_to_ref[i])[2]),
             "T_to_sfm": _mat(T_to_C[i]),
             "views": {"rendered": len(vs.c2w), "kept": int(vs.kept.sum()), "registered": registered,
@@ -871,6 +873,36 @@ def register(
             )
     return record
 
+
+
+def register_runs(
+    config_paths: Sequence[Path | str],
+    output: Path | str,
+    config: RegistrationConfig | None = None,
+    work_dir: Path | str | None = None,
+    names: Sequence[str] | None = None,
+    device: str = "cpu",
+    gt_nerf_to_world: Sequence[np.ndarray] | None = None,
+    console: Console = CONSOLE,
+) -> dict:
+    """Register trained nerfstudio runs from their config.yml files and write the registration file at ``output``.
+
+    ``work_dir`` defaults to ``<output>_work`` (renders and SfM files, reused by later calls). Raises
+    :class:`RegistrationError` or ``runs.RunLoadError`` (one line) on bad input; nothing is written then.
+    """
+    from nerfuser_ns.renderers import NerfstudioRenderer
+
+    output = Path(output)
+    if names is not None and len(names) != len(config_paths):
+        raise RegistrationError(f"{len(names)} names for {len(config_paths)} runs")
+    renderers = [
+        NerfstudioRenderer(c, device=device, name=None if names is None else names[i])
+        for i, c in enumerate(config_paths)
+    ]
+    work_dir = Path(work_dir) if work_dir is not None else output.with_name(output.stem + "_work")
+    record = register(renderers, config, work_dir, gt_nerf_to_world=gt_nerf_to_world, console=console)
+    write_registration(record, output)
+    return record
 
 
 def write_registration(record: dict, path: Path | str) -> Path:

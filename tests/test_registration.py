@@ -20,6 +20,7 @@ import pytest
 from nerfuser_ns import registration as reg
 from nerfuser_ns import scenes, sim3
 from nerfuser_ns.renderers import RenderBatch, Renderer, SceneFrameRenderer
+from nerfuser_ns.sampling import sample_hemisphere_poses
 from nerfuser_ns.scripts import register as cli
 
 W, H = 240, 180  # smallest size at which SIFT finds enough on these scenes (160x120: nothing reconstructs)
@@ -190,14 +191,30 @@ def test_umeyama_and_reference_options(oc_layout, oc_renderers, oc_record, work)
 def test_street_three_nerfs(work):
     layout = scenes.make_layout("street", seed=1, num_views=16, num_test_views=1, num_captures=3, width=W, height=H)
     renderers = [SceneFrameRenderer.from_layout(layout, c.name) for c in layout.captures]
-    config = small_config(sampling={"source": "training"})
+    # 48 images over the exhaustive limit: exercises the pose-guided pair list
+    config = small_config(sampling={"source": "training"}, sfm=reg.SfMConfig(exhaustive_max_images=40))
     rec = reg.register(renderers, config, work, gt_nerf_to_world=gt_of(layout))
+    assert rec["sfm"]["matching"] == "pose-guided pairs"
     assert len(rec["pairs"]) == 3
     checked = [p for p in rec["pairs"] if p["self_check"] is not None]
     assert len(checked) == 2 and all(p["self_check"]["passed"] for p in checked)  # spanning tree of 3 NeRFs
     for n in rec["nerfs"][1:]:
         g = n["ground_truth"]
         assert g["r_err_deg"] < 0.2 and g["t_err"] < 0.01 and g["s_err"] < 0.01, (n["name"], g)
+
+
+def test_pose_guided_pairs_are_linear_in_the_image_count(tmp_path):
+    def viewset(name, n):
+        c2w = sample_hemisphere_poses(n)
+        return reg.ViewSet(name, tmp_path / name, c2w, ["hemisphere"] * n, np.ones(n), np.ones(n, bool))
+
+    cfg = reg.SfMConfig(own_neighbors=4, cross_views=6)
+    views = [viewset("a", 40), viewset("b", 40), viewset("c", 40)]
+    pairs = reg._cheap_pairs(views, [v.image_names for v in views], cfg)
+    assert len(pairs) == len(set(pairs)) and all(a < b for a, b in pairs)
+    assert len(pairs) <= 120 * (4 + 2 * 6)
+    n_ab = sum(a.startswith("a/") and b.startswith("b/") for a, b in pairs)
+    assert n_ab >= 40 * 6  # every image of a meets 6 views of b (and vice versa)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
