@@ -166,6 +166,21 @@ def test_registration_file_round_trip(oc_record, tmp_path):
         reg.read_registration(tmp_path / "bad.json")
 
 
+def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderers, oc_record, work, tmp_path, capsys):
+    gt = []
+    for i, T in enumerate(gt_of(oc_layout)):
+        (tmp_path / f"gt{i}.json").write_text(json.dumps({"nerf_to_world": T.tolist()}))
+        gt.append(tmp_path / f"gt{i}.json")
+    rc, out, err = run_cli(tmp_path, oc_renderers, None, work_dir=work, gt_transforms=gt)
+    printed = capsys.readouterr().out
+    assert rc == 0, err
+    rec = reg.read_registration(out)
+    np.testing.assert_allclose(rec["nerfs"][1]["T_to_reference"], oc_record["nerfs"][1]["T_to_reference"])
+    np.testing.assert_array_equal(rec["nerfs"][1]["transform"], rec["nerfs"][1]["T_to_reference"])  # fusion reader
+    assert rec["nerfs"][1]["ground_truth"]["r_err_deg"] < 0.15
+    assert "capture_b" in printed and "r_err" in printed and "passed" in printed
+
+
 def test_rerun_reuses_renders_and_sfm(oc_layout, oc_renderers, oc_record, work):
     rec = reg.register(oc_renderers, small_config(), work, gt_nerf_to_world=gt_of(oc_layout))
     assert all(n["renders_reused"] for n in rec["nerfs"]) and rec["sfm"]["reused"]
