@@ -5,8 +5,12 @@
    scratch with ``--rebuild`` (~15 minutes on 2 CPU cores).
 3. Renders every world-frame test view from each NeRF (mapped into the NeRF's frame with the ground-truth
    SIM(3)) and scores it against the ground-truth image: the paper's single-"NeRF" baseline.
-4. Fuses the two NeRFs with the ground-truth transforms (common frame: capture_a's NeRF frame) and renders the
-   test views with every blend method in one pass (NeRF, Nearest, IDW-2D, IDW-3D, IDW-Sample), scored the same way.
+4. Registers the two NeRFs from their re-renderings with ``ns-nerfuser-register`` (their training poses,
+   320x240; renders and SfM are cached in ``<output-dir>/registration_work``) and reports its error against the
+   ground truth (``--no-register`` skips it).
+5. Fuses the two NeRFs (common frame: capture_a's NeRF frame) with the ground-truth and with the estimated
+   transforms and renders the test views with every blend method in one pass (NeRF, Nearest, IDW-2D, IDW-3D,
+   IDW-Sample), scored the same way.
 
 Outputs go to ``--output-dir``: PNG renders and ``summary.json``.
 
@@ -43,6 +47,10 @@ class DemoConfig:
     """Train the demo NeRFs from scratch instead of using the shipped ones."""
     max_test_views: int = 12
     """How many world-frame test views to render."""
+    register: bool = True
+    """Register the NeRFs from their re-renderings (about 5 minutes on 2 CPU cores; cached for re-runs)."""
+    registration_poses: int = 24
+    """Training poses per NeRF rendered for the registration."""
 
 
 def run_configs(runs_dir: Path) -> dict[str, Path]:
@@ -127,47 +135,78 @@ def main(cfg: DemoConfig) -> None:
         table.add_row(
             name, str(run.step), str(len(frames)), f"{scores['psnr']:.2f}", f"{scores['ssim']:.3f}", f"{per_view:.2f}"
         )
-    # 4. blend: every NeRF into capture_a's NeRF frame through the ground truth
+    # 4. register from re-renderings
+    ref = "capture_a"
+    transforms_sets: dict[str, dict[str, np.ndarray]] = {}
+    loaded = {name: runs.load_run(path) for name, path in configs.items()}
+    world_to_common = loaded[ref].data_to_nerf @ sim3.invert_sim3(np.asarray(captures[ref]["capture_to_world"]))
+    transforms_sets["ground truth"] = {
+        name: world_to_common @ np.asarray(captures[name]["capture_to_world"]) @ sim3.invert_sim3(run.data_to_nerf)
+        for name, run in loaded.items()
+    }
+    if cfg.register:
+        from nerfuser_ns.data import read_registration
+
+        reg_path = cfg.output_dir / "registration.json"
+        command = [
+            str(Path(sys.executable).parent / "ns-nerfuser-register"),
+            "--configs", *[str(p) for p in configs.values()],
+            "--output", str(reg_path),
+            "--work-dir", str(cfg.output_dir / "registration_work"),
+            "--ground-truth", str(cfg.scene_dir / "ground_truth.json"),
+            "--gt-captures", *configs.keys(),
+            "--sampling.source", "training",
+            "--sampling.max-training-poses", str(cfg.registration_poses),
+            "--sampling.width", "320", "--sampling.height", "240", "--sampling.fov-deg", "65",
+        ]  # fmt: skip
+        console.print("[bold]registering the NeRFs from their re-renderings")
+        t = time.perf_counter()
+        result = subprocess.run(command, cwd=ROOT)
+        if result.returncode != 0:
+            raise SystemExit("demo: registration failed (see above); rerun with --no-register to skip it")
+        entries = read_registration(reg_path)
+        record = json.loads(reg_path.read_text())
+        transforms_sets["estimated"] = {
+            name: entry.nerf_to_common for name, entry in zip(configs, entries, strict=True)
+        }
+        summary["registration"] = {
+            "file": str(reg_path),
+            "seconds": round(time.perf_counter() - t, 1),
+            "errors": {n["name"]: n.get("ground_truth") for n in record["nerfs"]},
+            "timings_s": record.get("timings_s"),
+        }
+
+    # 5. blend with every set of transforms
     from nerfuser_ns.model import fuse_models
 
-    loaded = {name: runs.load_run(path) for name, path in configs.items()}
-    ref = "capture_a"
-    world_to_common = loaded[ref].data_to_nerf @ sim3.invert_sim3(np.asarray(captures[ref]["capture_to_world"]))
-    nerfs = []
-    for name, run in loaded.items():
-        nerf_to_world = np.asarray(captures[name]["capture_to_world"]) @ sim3.invert_sim3(run.data_to_nerf)
-        nerfs.append((name, run.model, world_to_common @ nerf_to_world))
-    fused = fuse_models(nerfs, render_all_methods=True, share_outputs=False)
     c2w_common = sim3.transform_poses(world_to_common, c2w_world)
     cams = runs.make_cameras(c2w_common[:, :3], intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
     methods = ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
     keys = tuple(f"rgb_{m.replace('-', '_')}" for m in methods)
-    t = time.perf_counter()
-    out = runs.render_views(fused, cams, outputs=keys, description="rendering the fused scene")
-    per_view = (time.perf_counter() - t) / len(frames)
-    blend_table = Table(
-        title=f"demo: blending the two NeRFs (ground-truth transforms, gamma={fused.config.gamma}, "
-        f"tau={fused.config.tau})"
-    )
-    for col in ("method", "PSNR (dB)", "SSIM"):
-        blend_table.add_column(col)
-    summary["blending"] = {
-        "transforms": "ground truth",
-        "gamma": fused.config.gamma,
-        "tau": fused.config.tau,
-        "render_seconds_per_view_all_methods": round(per_view, 3),
-        "methods": {},
-    }
-    for method, key in zip(methods, keys, strict=True):
-        rgb = out[key].clamp(0, 1)
-        scores = metrics.image_metrics(rgb, target)
-        summary["blending"]["methods"][method] = scores
-        blend_table.add_row(method, f"{scores['psnr']:.2f}", f"{scores['ssim']:.3f}")
-        (cfg.output_dir / "fused" / method).mkdir(parents=True, exist_ok=True)
-        for i, img in enumerate(rgb):
-            Image.fromarray((img.numpy() * 255 + 0.5).astype(np.uint8)).save(
-                cfg.output_dir / "fused" / method / f"test_{i:03d}.png"
-            )
+    summary["blending"] = {}
+    blend_table = Table(title="demo: blending the two NeRFs (PSNR dB / SSIM on the test views)")
+    blend_table.add_column("method")
+    columns = {}
+    for label, transforms in transforms_sets.items():
+        nerfs = [(name, run.model, transforms[name]) for name, run in loaded.items()]
+        fused = fuse_models(nerfs, render_all_methods=True, share_outputs=False)
+        t = time.perf_counter()
+        out = runs.render_views(fused, cams, outputs=keys, description=f"rendering the fused scene ({label})")
+        per_view = (time.perf_counter() - t) / len(frames)
+        entry = {"gamma": fused.config.gamma, "tau": fused.config.tau,
+                 "render_seconds_per_view_all_methods": round(per_view, 3), "methods": {}}  # fmt: skip
+        for method, key in zip(methods, keys, strict=True):
+            rgb = out[key].clamp(0, 1)
+            entry["methods"][method] = metrics.image_metrics(rgb, target)
+            folder = cfg.output_dir / "fused" / label.replace(" ", "_") / method
+            folder.mkdir(parents=True, exist_ok=True)
+            for i, img in enumerate(rgb):
+                Image.fromarray((img.numpy() * 255 + 0.5).astype(np.uint8)).save(folder / f"test_{i:03d}.png")
+        summary["blending"][label] = entry
+        blend_table.add_column(f"{label} T (gamma={fused.config.gamma}, tau={fused.config.tau})")
+        columns[label] = [f"{entry['methods'][m]['psnr']:.2f} / {entry['methods'][m]['ssim']:.3f}" for m in methods]
+    for i, method in enumerate(methods):
+        blend_table.add_row(method, *[col[i] for col in columns.values()])
 
     summary["seconds"] = round(time.perf_counter() - start, 1)
     out_path = cfg.output_dir / "summary.json"
@@ -175,6 +214,14 @@ def main(cfg: DemoConfig) -> None:
     tmp.write_text(json.dumps(summary, indent=2) + "\n")
     os.replace(tmp, out_path)
     console.print(table)
+    if "registration" in summary:
+        for name, err in summary["registration"]["errors"].items():
+            if err:
+                console.print(
+                    f"registration {Path(name).parts[-4] if len(Path(name).parts) > 3 else name}: "
+                    f"r_err {err['r_err_deg']:.3f} deg, t_err {err['t_err']:.4f}, s_err {err['s_err']:.4f}"
+                    f"{' FAILURE' if err['failure'] else ''}"
+                )
     console.print(blend_table)
     console.print(f"renders and summary in {cfg.output_dir} ({summary['seconds']} s)")
 
