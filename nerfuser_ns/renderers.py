@@ -151,7 +151,7 @@ class NerfstudioRenderer:
 
         self.config_path = runs.resolve_config_path(config_path)
         config = runs.read_config(self.config_path)
-        self.checkpoint_path, self.step = runs._latest_checkpoint(self.config_path, config, None)
+        self.checkpoint_path, self.step = runs.find_checkpoint(self.config_path, config)
         self.data_to_nerf = runs.read_dataparser_transform(self.config_path)
         self.name = name or str(config_path)
         self.device = device

@@ -95,7 +95,8 @@ def read_config(config_path: Path | str) -> TrainerConfig:
     return config
 
 
-def _latest_checkpoint(config_path: Path, config: TrainerConfig, step: int | None) -> tuple[Path, int]:
+def find_checkpoint(config_path: Path, config: TrainerConfig, step: int | None = None) -> tuple[Path, int]:
+    """The checkpoint of a run (the latest, or the given step) and its step; one-line errors when there is none."""
     ckpt_dir = config_path.parent / config.relative_model_dir
     ckpts = sorted(ckpt_dir.glob("step-*.ckpt")) if ckpt_dir.is_dir() else []
     if not ckpts:
@@ -205,7 +206,7 @@ def load_run(
     config = read_config(config_path)
     if eval_num_rays_per_chunk:
         config.pipeline.model.eval_num_rays_per_chunk = eval_num_rays_per_chunk
-    ckpt_path, ckpt_step = _latest_checkpoint(config_path, config, step)
+    ckpt_path, ckpt_step = find_checkpoint(config_path, config, step)
     try:
         state = runtime.load_checkpoint(ckpt_path)
     except (FileNotFoundError, ValueError) as e:
