@@ -32,6 +32,9 @@ class RenderBatch:
     """Colour, float32 in [0, 1]."""
     accumulation: Float[np.ndarray, "n h w"] | None = None
     """Opacity along each pixel's ray in [0, 1] (None if the renderer has no notion of it: everything is seen)."""
+    depth: Float[np.ndarray, "n h w"] | None = None
+    """Distance along each pixel-centre ray (unit direction; ray distance, not z-depth, as nerfstudio's ``depth``) in
+    the renderer's frame units, 0 where nothing is hit; only when asked for (``render(..., depth=True)``)."""
 
 
 @runtime_checkable
@@ -46,7 +49,11 @@ class Renderer(Protocol):
         ...
 
     def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics) -> RenderBatch:
-        """Render the views ``c2w`` (own frame, OpenGL axes) with shared pinhole ``intrinsics``."""
+        """Render the views ``c2w`` (own frame, OpenGL axes) with shared pinhole ``intrinsics``.
+
+        Renderers that can also render depth take a keyword ``depth: bool = False`` and then fill
+        :attr:`RenderBatch.depth` (both adapters below do).
+        """
         ...
 
     def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
@@ -69,7 +76,8 @@ class SceneFrameRenderer:
     """A ground-truth scene seen through ``frame_to_world`` (SIM(3)): a perfect NeRF living in that frame.
 
     A pose ``G`` in the frame is rendered from the world pose ``transform_poses(frame_to_world, G)``; the pinhole
-    intrinsics are unchanged (a similarity does not change what a camera sees). Accumulation is the hit mask.
+    intrinsics are unchanged (a similarity does not change what a camera sees). Accumulation is the hit mask; depth
+    is the ray-caster's world ray distance divided by the frame's scale (frame units).
     """
 
     def __init__(
@@ -115,18 +123,22 @@ class SceneFrameRenderer:
         h.update(f"{self.name}|{self.supersample}".encode())
         return "scene:" + h.hexdigest()
 
-    def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics) -> RenderBatch:
+    def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics, depth: bool = False) -> RenderBatch:
         from nerfuser_ns.scenes import render
-        from nerfuser_ns.sim3 import transform_poses
+        from nerfuser_ns.sim3 import decompose_sim3, transform_poses
 
         world = transform_poses(self.frame_to_world, _as_4x4(c2w))
+        scale = float(decompose_sim3(self.frame_to_world)[2])  # world units per frame unit
         k = intrinsics
-        rgbs, accs = [], []
+        rgbs, accs, depths = [], [], []
         for pose in world:
             out = render(self.scene, pose, k.fx, k.fy, k.cx, k.cy, k.width, k.height, supersample=self.supersample)
             rgbs.append(out.rgb.numpy())
             accs.append(out.mask.numpy().astype(np.float32))
-        return RenderBatch(np.stack(rgbs).astype(np.float32), np.stack(accs))
+            depths.append(out.depth.numpy() / scale)
+        return RenderBatch(
+            np.stack(rgbs).astype(np.float32), np.stack(accs), np.stack(depths).astype(np.float32) if depth else None
+        )
 
     def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
         return None if self._training is None else self._training.copy()
@@ -177,15 +189,19 @@ class NerfstudioRenderer:
         ckpt = self.checkpoint_path.resolve()
         return f"nerfstudio:{self.config_path.resolve()}|{ckpt}|{stat.st_mtime_ns}|{stat.st_size}"
 
-    def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics) -> RenderBatch:
+    def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics, depth: bool = False) -> RenderBatch:
+        """Render the views; ``depth=True`` adds the model's ``depth`` output (nerfacto: the median sample distance
+        along the unit-direction ray, i.e. ray distance in the NeRF frame's units)."""
         from nerfuser_ns import runs
 
         loaded = self._load()
         k = intrinsics
         cameras = runs.make_cameras(_as_4x4(c2w)[:, :3, :], k.fx, k.fy, k.cx, k.cy, k.width, k.height)
-        out = runs.render_views(loaded.model, cameras, outputs=("rgb", "accumulation"), progress=False)
+        names = ("rgb", "accumulation", "depth") if depth else ("rgb", "accumulation")
+        out = runs.render_views(loaded.model, cameras, outputs=names, progress=False)
         rgb = out["rgb"].clamp(0, 1).numpy().astype(np.float32)
-        return RenderBatch(rgb, out["accumulation"][..., 0].clamp(0, 1).numpy().astype(np.float32))
+        acc = out["accumulation"][..., 0].clamp(0, 1).numpy().astype(np.float32)
+        return RenderBatch(rgb, acc, out["depth"][..., 0].numpy().astype(np.float32) if depth else None)
 
     def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
         loaded = self._load(with_data=True)
