@@ -1,0 +1,284 @@
+"""Evaluation on generated scenes with exact ground truth: scene/run bookkeeping, blending quality, render cost.
+
+The building blocks of ``scripts/bench_blending.py`` and ``scripts/evaluate.py``: a :class:`SceneRuns` ties a
+generated scene (``scripts/make_scene.py``) to the runs trained on its captures (``scripts/build_demo.py``) and
+derives every ground-truth transform from files on disk; :func:`blend_metrics` scores every blend method in one
+rendering pass; :func:`measure_render_cost` times the fused model against its sub-models on the same rays.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.base_model import Model
+from torch import Tensor
+
+from nerfuser_ns import metrics, runs, sim3
+
+BLEND_METHODS = ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
+"""Every blend method, in the paper's table order."""
+
+RUN_SUBDIR = Path("nerfacto-cpu/demo")
+"""Where ``scripts/build_demo.py`` puts a capture's run below ``<runs dir>/<capture>/``."""
+
+
+class EvaluationError(ValueError):
+    """Bad evaluation input (one line, naming the file or value)."""
+
+
+@dataclass
+class SceneRuns:
+    """A generated scene and the runs trained on its captures (one run per capture, same order)."""
+
+    name: str
+    """Short name used in reports."""
+    scene_dir: Path
+    """The scene folder (with ``ground_truth.json``)."""
+    configs: list[Path]
+    """config.yml of each capture's run, in the ground truth's capture order."""
+    ground_truth: dict = field(repr=False)
+    """The parsed ``ground_truth.json``."""
+
+    @property
+    def captures(self) -> list[str]:
+        return [c["name"] for c in self.ground_truth["captures"]]
+
+    @classmethod
+    def from_dirs(cls, name: str, scene_dir: Path | str, runs_dir: Path | str) -> SceneRuns:
+        """Reads ``<scene_dir>/ground_truth.json`` and finds ``<runs_dir>/<capture>/nerfacto-cpu/demo/config.yml``."""
+        scene_dir, runs_dir = Path(scene_dir), Path(runs_dir)
+        gt_path = scene_dir / "ground_truth.json"
+        if not gt_path.is_file():
+            raise EvaluationError(f"{gt_path}: no ground truth; generate the scene with scripts/make_scene.py")
+        gt = json.loads(gt_path.read_text())
+        configs = [runs_dir / c["name"] / RUN_SUBDIR / "config.yml" for c in gt["captures"]]
+        missing = [str(p) for p in configs if not p.is_file()]
+        if missing:
+            raise EvaluationError(
+                f"{missing[0]}: no trained run for this capture; train it with scripts/build_demo.py "
+                f"--scene-dir {scene_dir} --runs-dir {runs_dir}"
+            )
+        return cls(name=name, scene_dir=scene_dir, configs=configs, ground_truth=gt)
+
+    @classmethod
+    def parse(cls, spec: str) -> SceneRuns:
+        """``NAME=SCENE_DIR:RUNS_DIR`` (the ``--scenes`` syntax of the benchmark scripts)."""
+        name, _, dirs = spec.partition("=")
+        scene_dir, _, runs_dir = dirs.partition(":")
+        if not name or not scene_dir or not runs_dir:
+            raise EvaluationError(f"scene {spec!r}: expected NAME=SCENE_DIR:RUNS_DIR")
+        return cls.from_dirs(name, scene_dir, runs_dir)
+
+    def nerf_to_world(self) -> list[Float[np.ndarray, "4 4"]]:
+        """Ground truth: each run's NeRF frame -> the scene's world frame (capture_to_world after the inverse of the
+        run's dataparser transform)."""
+        return [
+            np.asarray(c["capture_to_world"], dtype=np.float64) @ sim3.invert_sim3(runs.read_dataparser_transform(p))
+            for c, p in zip(self.ground_truth["captures"], self.configs, strict=True)
+        ]
+
+    def nerf_to_common(self, reference: int = 0) -> list[Float[np.ndarray, "4 4"]]:
+        """Ground truth: each run's NeRF frame -> the reference run's NeRF frame (the common frame)."""
+        to_world = self.nerf_to_world()
+        world_to_common = sim3.invert_sim3(to_world[reference])
+        return [world_to_common @ T for T in to_world]
+
+    def test_views(self, reference: int = 0, max_views: int | None = None) -> tuple[Cameras, Float[Tensor, "n h w 3"]]:
+        """The world-frame test capture, posed in the common frame, and its ground-truth images."""
+        from PIL import Image
+
+        test_dir = self.scene_dir / self.ground_truth["test"]["path"]
+        meta = json.loads((test_dir / "transforms.json").read_text())
+        frames = meta["frames"][:max_views]
+        c2w_world = np.stack([np.asarray(f["transform_matrix"], dtype=np.float64) for f in frames])
+        world_to_common = sim3.invert_sim3(self.nerf_to_world()[reference])
+        c2w = sim3.transform_poses(world_to_common, c2w_world)
+        cams = runs.make_cameras(c2w[:, :3], meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"])
+        images = [np.asarray(Image.open(test_dir / f["file_path"]).convert("RGB"), np.float32) / 255 for f in frames]
+        return cams, torch.from_numpy(np.stack(images))
+
+
+def registered_transforms(registration_file: Path | str, scene: SceneRuns) -> list[Float[np.ndarray, "4 4"]]:
+    """Estimated NeRF -> common transforms from a registration file, in the scene's capture order."""
+    from nerfuser_ns.data import read_registration
+
+    by_name = {e.name: e.nerf_to_common for e in read_registration(registration_file, check_runs=False)}
+    missing = [c for c in scene.captures if c not in by_name]
+    if missing:
+        raise EvaluationError(f"{registration_file}: no NeRF named {missing[0]!r} (it has {sorted(by_name)})")
+    return [by_name[c] for c in scene.captures]
+
+
+def fused(models: Sequence[tuple[str, Model]], transforms: Sequence[np.ndarray], **overrides):  # noqa: ANN201 - NerfuserModel (imported lazily: model.py pulls in nerfstudio's heavy modules)
+    """A fused model of loaded sub-models under the given NeRF -> common transforms (``overrides``: config fields)."""
+    from nerfuser_ns.model import fuse_models
+
+    if len(models) != len(transforms):
+        raise EvaluationError(f"{len(models)} models but {len(transforms)} transforms")
+    return fuse_models([(n, m, T) for (n, m), T in zip(models, transforms, strict=True)], **overrides)
+
+
+def blend_metrics(
+    models: Sequence[tuple[str, Model]],
+    transforms: Sequence[np.ndarray],
+    cameras: Cameras,
+    target: Float[Tensor, "n h w 3"],
+    gamma: float = 5.0,
+    tau: float | None = 1.8,
+    methods: Sequence[str] = BLEND_METHODS,
+    reference_nerf: int = 0,
+    description: str = "blending",
+) -> dict[str, dict[str, float]]:
+    """PSNR/SSIM/LPIPS of every blend method on the given views, rendered in one pass (shared sub-model queries)."""
+    model = fused(
+        models, transforms, gamma=gamma, tau=tau, reference_nerf=reference_nerf, render_all_methods=True,
+        share_outputs=False,
+    )  # fmt: skip
+    keys = tuple(f"rgb_{m.replace('-', '_')}" for m in methods)
+    with torch.no_grad():
+        out = runs.render_views(model, cameras, outputs=keys, description=description)
+    return {m: metrics.image_metrics(out[k].clamp(0, 1), target) for m, k in zip(methods, keys, strict=True)}
+
+
+class _PeakRSS:
+    """Samples the process's resident memory in a thread; ``peak - baseline`` is what the block added at most."""
+
+    def __init__(self, interval_s: float = 0.002):
+        import psutil
+
+        self._proc = psutil.Process()
+        self._interval = interval_s
+        self._stop = threading.Event()
+        self.baseline = self.peak = 0
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self._proc.memory_info().rss)
+            time.sleep(self._interval)
+
+    def __enter__(self) -> _PeakRSS:
+        self.baseline = self.peak = self._proc.memory_info().rss
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:  # noqa: ANN002
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, self._proc.memory_info().rss)
+
+    @property
+    def added_mib(self) -> float:
+        return (self.peak - self.baseline) / 2**20
+
+
+@dataclass
+class RenderCost:
+    """Fused render time against the sum of the sub-models' own render times for the same rays."""
+
+    num_rays: int
+    """Rays per chunk (one forward pass)."""
+    fused_s: float
+    """Median seconds of one fused forward pass over the chunk."""
+    sub_s: list[float]
+    """Median seconds of each sub-model's own forward pass over the chunk, mapped into its frame."""
+    ratio: float
+    """``fused_s / sum(sub_s)`` (medians over interleaved repeats, so machine noise hits both alike)."""
+    fused_peak_mib: float
+    """Peak resident memory added by one fused pass over the chunk (MiB, sampled)."""
+    sub_peak_mib: list[float]
+    """Peak resident memory added by each sub-model's own pass (MiB, sampled)."""
+    method: str
+    repeats: int
+
+    def as_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def measure_render_cost(
+    models: Sequence[tuple[str, Model]],
+    transforms: Sequence[np.ndarray],
+    cameras: Cameras,
+    num_rays: int = 4096,
+    repeats: int = 5,
+    method: str = "idw-sample",
+    seed: int = 0,
+    gamma: float = 5.0,
+    tau: float | None = 1.8,
+) -> RenderCost:
+    """Times one chunk of ``num_rays`` random test rays through the fused model (``method``, no extra outputs) and
+    through each sub-model's own forward pass (collider, sampler, field, renderers) on the same rays mapped into its
+    frame. Repeats are interleaved; the first (warm-up, compilation) pass is not counted."""
+    from nerfuser_ns.model import map_rays
+
+    model = fused(models, transforms, blend_method=method, gamma=gamma, tau=tau, share_outputs=False)
+    bundle = cameras.generate_rays(torch.arange(len(cameras))[:, None], keep_shape=False)
+    gen = torch.Generator().manual_seed(seed)
+    pick = torch.randperm(len(bundle), generator=gen)[:num_rays]
+    rays = bundle[pick]
+    mapped = [map_rays(rays, model.common_to_nerf[i], m.num_train_data)[0] for i, (_, m) in enumerate(models)]
+
+    def timed(fn) -> tuple[float, float]:  # noqa: ANN001
+        with _PeakRSS() as mem:
+            t = time.perf_counter()
+            fn()
+            dt = time.perf_counter() - t
+        return dt, mem.added_mib
+
+    passes = [lambda: model(rays)] + [lambda r=r, m=m: m(r) for r, (_, m) in zip(mapped, models, strict=True)]
+    times: list[list[float]] = [[] for _ in passes]
+    peaks: list[list[float]] = [[] for _ in passes]
+    with torch.no_grad():
+        for p in passes:
+            p()  # warm-up
+        for _ in range(repeats):
+            for i, p in enumerate(passes):
+                dt, mib = timed(p)
+                times[i].append(dt)
+                peaks[i].append(mib)
+    med = [statistics.median(t) for t in times]
+    return RenderCost(
+        num_rays=len(rays), fused_s=med[0], sub_s=med[1:], ratio=med[0] / sum(med[1:]),
+        fused_peak_mib=max(peaks[0]), sub_peak_mib=[max(p) for p in peaks[1:]], method=method, repeats=repeats,
+    )  # fmt: skip
+
+
+def geometric_gammas(low: float = 1e-2, high: float = 1e3, num: int = 11) -> list[float]:
+    """Gamma values spaced geometrically over ``[low, high]`` (the paper's ablation range)."""
+    return [float(g) for g in np.geomspace(low, high, num)]
+
+
+def write_atomic(path: Path | str, text: str) -> Path:
+    """Writes ``text`` to ``path`` through a temporary file and a rename (no half-written reports)."""
+    import os
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path
+
+
+__all__ = [
+    "BLEND_METHODS",
+    "EvaluationError",
+    "RenderCost",
+    "SceneRuns",
+    "blend_metrics",
+    "fused",
+    "geometric_gammas",
+    "measure_render_cost",
+    "registered_transforms",
+    "write_atomic",
+]

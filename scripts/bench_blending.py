@@ -1,0 +1,171 @@
+"""Blending benchmark: quality of every blend method and the fused render cost, on generated scenes.
+
+Per scene (its runs trained by ``scripts/build_demo.py``): the world-frame test views are rendered by the fused model
+with every blend method in one pass (NeRF, Nearest, IDW-2D, IDW-3D, IDW-Sample) and scored against the ground truth
+(PSNR / SSIM / LPIPS when its weights are local), once with the ground-truth transforms and once with the estimated
+ones from a registration file when given. Then one chunk of test rays is timed through the fused IDW-Sample model
+and through each sub-model's own forward pass on the same rays (interleaved repeats, medians), with the peak
+resident memory each pass adds.
+
+gamma / tau default to the paper's per-layout values (object-centric: 5 / 1.8; street: 10 / 1.2).
+
+Example (after scripts/bench_registration.py wrote the registration files):
+    python scripts/bench_blending.py \\
+        --scenes demo=demo/scene:demo/runs street0=outputs/bench/scenes/street-0:outputs/bench/runs/street-0 \\
+        --registrations demo=outputs/bench/registration_cases/demo-training-24.json \\
+                        street0=outputs/bench/registration_cases/street0-training-24.json
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tyro
+
+PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2)}
+"""(gamma, tau) the paper uses per scene type."""
+
+
+@dataclass
+class BenchBlendingConfig:
+    """Score every blend method on generated scenes and time the fused model against its sub-models."""
+
+    scenes: list[str] = field(default_factory=lambda: ["demo=demo/scene:demo/runs"])
+    """Scenes as NAME=SCENE_DIR:RUNS_DIR (runs at RUNS_DIR/<capture>/nerfacto-cpu/demo/config.yml)."""
+    registrations: list[str] = field(default_factory=list)
+    """Estimated transforms as NAME=REGISTRATION_JSON (ns-nerfuser-register output); scenes without one are scored
+    with the ground-truth transforms only."""
+    max_test_views: int = 12
+    """Test views per scene."""
+    gamma: float | None = None
+    """Blending rate (None: the paper's value for the scene's layout)."""
+    tau: float | None = None
+    """Distance test (None: the paper's value for the scene's layout)."""
+    timing_rays: int = 4096
+    """Rays in the timed chunk."""
+    timing_repeats: int = 5
+    """Interleaved repeats of the timing (medians are reported)."""
+    seed: int = 0
+    """Seed of the timed rays."""
+    output: Path = Path("outputs/bench/blending.json")
+    """JSON results (a markdown summary is written beside it)."""
+
+
+def _markdown(report: dict) -> str:
+    lines = [
+        f"# Blending benchmark ({report['date']})",
+        "",
+        f"`{report['command']}` on {report['machine']['platform']}, {report['machine']['cpus']} CPUs, "
+        f"torch {report['machine']['torch']}.",
+        "",
+        "PSNR (dB) / SSIM on the world-frame test views; LPIPS "
+        + ("included." if report["lpips_available"] else "not available (no local AlexNet weights)."),
+        "",
+    ]
+    for s in report["scenes"]:
+        head = f"{s['name']} ({s['layout']}, {s['test_views']} test views, gamma {s['gamma']}, tau {s['tau']})"
+        lines += [f"## {head}", ""]
+        labels = list(s["quality"])
+        lines.append("| method | " + " | ".join(f"{lbl} T" for lbl in labels) + " |")
+        lines.append("| --- |" + " --- |" * len(labels))
+        for m in s["quality"][labels[0]]:
+            cells = []
+            for lbl in labels:
+                q = s["quality"][lbl][m]
+                lp = f" / {q['lpips']:.3f}" if report["lpips_available"] else ""
+                cells.append(f"{q['psnr']:.2f} / {q['ssim']:.3f}{lp}")
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        for lbl in labels:
+            q = s["quality"][lbl]
+            lines.append("")
+            lines.append(
+                f"{lbl} T: IDW-Sample - Nearest = {q['idw-sample']['psnr'] - q['nearest']['psnr']:+.2f} dB, "
+                f"- IDW-2D = {q['idw-sample']['psnr'] - q['idw-2d']['psnr']:+.2f} dB, "
+                f"- IDW-3D = {q['idw-sample']['psnr'] - q['idw-3d']['psnr']:+.2f} dB."
+            )
+        c = s["cost"]
+        subs = " + ".join(f"{t * 1000:.0f}" for t in c["sub_s"])
+        lines += [
+            "",
+            f"Cost ({c['num_rays']} rays, {c['repeats']} interleaved repeats, medians): fused {c['method']} "
+            f"{c['fused_s'] * 1000:.0f} ms vs sub-models {subs} ms = ratio **{c['ratio']:.3f}**; peak memory added "
+            f"per chunk: fused {c['fused_peak_mib']:.0f} MiB, sub-models "
+            + ", ".join(f"{m:.0f}" for m in c["sub_peak_mib"])
+            + " MiB.",
+            "",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def main(cfg: BenchBlendingConfig) -> None:
+    import torch
+    from rich.console import Console
+
+    from nerfuser_ns import evaluation, runs, runtime
+    from nerfuser_ns.evaluation import SceneRuns
+
+    console = Console()
+    registrations = {}
+    for spec in cfg.registrations:
+        name, _, path = spec.partition("=")
+        if not name or not path:
+            raise SystemExit(f"--registrations: expected NAME=REGISTRATION_JSON, got {spec!r}")
+        registrations[name] = Path(path)
+    try:
+        scenes = [SceneRuns.parse(s) for s in cfg.scenes]
+    except evaluation.EvaluationError as e:
+        raise SystemExit(f"bench_blending: {e}") from None
+    unknown = sorted(set(registrations) - {s.name for s in scenes})
+    if unknown:
+        raise SystemExit(f"--registrations: no scene named {unknown[0]!r} in --scenes")
+    report = {
+        "command": "python scripts/bench_blending.py " + " ".join(sys.argv[1:]),
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__},
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "lpips_available": runtime.lpips_weights_available(),
+        "scenes": [],
+    }
+    for scene in scenes:
+        layout = scene.ground_truth["layout"]
+        gamma, tau = PAPER_SETTINGS.get(layout, (5.0, 1.8))
+        gamma = cfg.gamma if cfg.gamma is not None else gamma
+        tau = cfg.tau if cfg.tau is not None else tau
+        console.rule(f"{scene.name} ({layout}, gamma {gamma}, tau {tau})")
+        models = [(n, runs.load_run(p).model) for n, p in zip(scene.captures, scene.configs, strict=True)]
+        cams, target = scene.test_views(max_views=cfg.max_test_views)
+        transforms = {"ground-truth": scene.nerf_to_common()}
+        if scene.name in registrations:
+            transforms["estimated"] = evaluation.registered_transforms(registrations[scene.name], scene)
+        quality = {}
+        for label, T in transforms.items():
+            quality[label] = evaluation.blend_metrics(
+                models, T, cams, target, gamma=gamma, tau=tau, description=f"{scene.name}: {label} T"
+            )
+            console.print(label, {m: round(q["psnr"], 2) for m, q in quality[label].items()})
+        cost = evaluation.measure_render_cost(
+            models, transforms["ground-truth"], cams, num_rays=cfg.timing_rays, repeats=cfg.timing_repeats,
+            seed=cfg.seed, gamma=gamma, tau=tau,
+        )  # fmt: skip
+        console.print(f"cost: ratio {cost.ratio:.3f} (fused {cost.fused_s:.3f} s, subs {cost.sub_s})")
+        report["scenes"].append({
+            "name": scene.name, "scene_dir": str(scene.scene_dir), "layout": layout, "gamma": gamma, "tau": tau,
+            "test_views": len(cams), "registration": str(registrations.get(scene.name)), "quality": quality,
+            "cost": cost.as_dict(),
+        })  # fmt: skip
+        evaluation.write_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
+        evaluation.write_atomic(cfg.output.with_suffix(".md"), _markdown(report))
+    console.print(f"wrote {cfg.output} and {cfg.output.with_suffix('.md')}")
+
+
+def entrypoint() -> None:
+    main(tyro.cli(BenchBlendingConfig))
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,152 @@
+"""Evaluation building blocks on a tiny generated scene with two tiny trained runs, and the blending benchmark."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nerfuser_ns import evaluation, metrics, runs, scenes, sim3
+from nerfuser_ns.data import NerfEntry, write_registration
+from nerfuser_ns.evaluation import EvaluationError, SceneRuns
+from nerfuser_ns.training import train
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> SceneRuns:
+    """A tiny object-centric scene and one tiny nerfacto-cpu run per capture, laid out as build_demo.py does."""
+    root = tmp_path_factory.mktemp("eval")
+    layout = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
+    scenes.write_scene(layout, root / "scene", supersample=1)
+    for capture in ("capture_a", "capture_b"):
+        train(data=root / "scene" / capture, output_dir=root / "runs", experiment_name=capture,
+              max_num_iterations=30, seed=0, timestamp="demo", tiny=True)  # fmt: skip
+    return SceneRuns.from_dirs("tiny", root / "scene", root / "runs")
+
+
+@pytest.fixture(scope="module")
+def models(tiny):
+    return [(n, runs.load_run(p).model) for n, p in zip(tiny.captures, tiny.configs, strict=True)]
+
+
+def test_scene_runs_bad_input_names_the_file(tiny, tmp_path):
+    with pytest.raises(EvaluationError, match=r"ground_truth.json: no ground truth"):
+        SceneRuns.from_dirs("x", tmp_path, tiny.configs[0].parents[3])
+    runs_dir = tmp_path / "runs"
+    shutil.copytree(tiny.configs[0].parents[3], runs_dir)
+    shutil.rmtree(runs_dir / "capture_b")
+    with pytest.raises(EvaluationError, match=r"capture_b/nerfacto-cpu/demo/config.yml: no trained run.*build_demo"):
+        SceneRuns.from_dirs("x", tiny.scene_dir, runs_dir)
+    with pytest.raises(EvaluationError, match="NAME=SCENE_DIR:RUNS_DIR"):
+        SceneRuns.parse("no-equals-sign")
+
+
+def test_ground_truth_transforms_are_consistent(tiny):
+    to_world = tiny.nerf_to_world()
+    to_common = tiny.nerf_to_common(reference=1)
+    np.testing.assert_allclose(to_common[1], np.eye(4), atol=1e-9)
+    # a point of NeRF 0 reaches the world the same way directly and through the common frame
+    p = np.array([0.1, -0.2, 0.3, 1.0])
+    np.testing.assert_allclose(to_world[1] @ to_common[0] @ p, to_world[0] @ p, atol=1e-6)  # float32 json
+    # the test cameras, posed in the common frame, are the world test cameras
+    cams, target = tiny.test_views(reference=1)
+    meta = json.loads((tiny.scene_dir / "test" / "transforms.json").read_text())
+    world = np.stack([np.asarray(f["transform_matrix"]) for f in meta["frames"]])
+    back = sim3.transform_poses(
+        to_world[1],
+        np.concatenate([cams.camera_to_worlds.double().numpy(), np.tile([[[0, 0, 0, 1.0]]], (len(cams), 1, 1))], 1),
+    )
+    np.testing.assert_allclose(back[:, :3, 3], world[:, :3, 3], atol=1e-5)
+    assert target.shape == (len(world), meta["h"], meta["w"], 3) and 0 <= target.min() and target.max() <= 1
+
+
+def test_registered_transforms_follow_capture_order(tiny, tmp_path):
+    T = tiny.nerf_to_common()
+    entries = [NerfEntry(n, c, t) for n, c, t in zip(tiny.captures, tiny.configs, T, strict=True)]
+    path = write_registration(tmp_path / "reg.json", entries[::-1])
+    got = evaluation.registered_transforms(path, tiny)
+    for a, b in zip(got, T, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+    other = write_registration(tmp_path / "other.json", [NerfEntry("zzz", tiny.configs[0], np.eye(4))])
+    with pytest.raises(EvaluationError, match="no NeRF named 'capture_a'"):
+        evaluation.registered_transforms(other, tiny)
+
+
+def test_blend_metrics_nerf_method_is_the_reference_alone(tiny, models):
+    cams, target = tiny.test_views()
+    T = tiny.nerf_to_common()
+    scores = evaluation.blend_metrics(models, T, cams, target, methods=("nerf", "nearest", "idw-sample"))
+    assert set(scores) == {"nerf", "nearest", "idw-sample"}
+    alone = runs.render_views(models[0][1], cams, outputs=("rgb",), progress=False)["rgb"]
+    expected = metrics.image_metrics(alone.clamp(0, 1), target)
+    assert scores["nerf"]["psnr"] == pytest.approx(expected["psnr"], abs=1e-3)
+    # the other methods really blend: with two different NeRFs they do not reproduce the reference alone
+    assert scores["idw-sample"]["psnr"] != pytest.approx(expected["psnr"], abs=1e-3)
+    with pytest.raises(EvaluationError, match="2 models but 1 transforms"):
+        evaluation.blend_metrics(models, T[:1], cams, target)
+
+
+def test_measure_render_cost(tiny, models):
+    cams, _ = tiny.test_views()
+    cost = evaluation.measure_render_cost(models, tiny.nerf_to_common(), cams, num_rays=256, repeats=2)
+    assert cost.num_rays == 256 and cost.repeats == 2 and len(cost.sub_s) == 2 == len(cost.sub_peak_mib)
+    assert cost.fused_s > 0 and all(t > 0 for t in cost.sub_s)
+    assert cost.ratio == pytest.approx(cost.fused_s / sum(cost.sub_s))
+    # the fused pass runs both sub-models' samplers and fields, so it cannot be cheaper than the cheaper of them
+    assert cost.fused_s > min(cost.sub_s)
+    assert cost.fused_peak_mib >= 0 and set(cost.as_dict()) >= {"ratio", "fused_s", "sub_s", "fused_peak_mib"}
+
+
+def test_geometric_gammas():
+    g = evaluation.geometric_gammas(1e-2, 1e3, 6)
+    assert g[0] == pytest.approx(1e-2) and g[-1] == pytest.approx(1e3)
+    assert np.allclose(np.diff(np.log10(g)), 1.0)
+
+
+def test_bench_blending_script(tiny, tmp_path):
+    reg = write_registration(tmp_path / "reg.json", [
+        NerfEntry(n, c, T) for n, c, T in zip(tiny.captures, tiny.configs, tiny.nerf_to_common(), strict=True)
+    ])  # fmt: skip
+    runs_dir = tiny.configs[0].parents[3]
+    out = tmp_path / "bench" / "blending.json"
+    cmd = [
+        sys.executable,
+        str(ROOT / "scripts/bench_blending.py"),
+        "--scenes",
+        f"tiny={tiny.scene_dir}:{runs_dir}",
+        "--registrations",
+        f"tiny={reg}",
+        "--timing-rays",
+        "128",
+        "--timing-repeats",
+        "1",
+        "--output",
+        str(out),
+    ]
+    result = subprocess.run(
+        cmd, capture_output=True, text=True, cwd=tmp_path, env={**os.environ, "OMP_NUM_THREADS": "1"}
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads(out.read_text())
+    (scene,) = report["scenes"]
+    assert scene["gamma"] == 5.0 and scene["tau"] == 1.8  # the paper's object-centric setting
+    q = scene["quality"]
+    assert set(q) == {"ground-truth", "estimated"} and set(q["estimated"]) == set(evaluation.BLEND_METHODS)
+    for m in evaluation.BLEND_METHODS:  # the "estimated" transforms are the ground truth here
+        assert q["estimated"][m]["psnr"] == pytest.approx(q["ground-truth"][m]["psnr"], abs=1e-4)
+    assert scene["cost"]["num_rays"] == 128
+    md = out.with_suffix(".md").read_text()
+    assert "IDW-Sample - Nearest" in md and "ratio" in md
+    assert not list(out.parent.glob("*.tmp"))
+    bad = subprocess.run(cmd[:3] + ["nope=/nonexistent:/nonexistent"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "ground_truth.json: no ground truth" in bad.stderr
