@@ -82,9 +82,10 @@ class PoseSamplingConfig:
     jitter_deg: float = 0.0
     """Random perturbation of azimuth / elevation (0: the deterministic ring layout)."""
     seed: int = 0
-    """Seed of the jitter."""
+    """Seed of the jitter and of the training-pose subset (0: evenly spaced through the run's list; any other seed: a
+    random subset, for benchmarks over pose draws)."""
     max_training_poses: int = 32
-    """At most this many training poses per NeRF (evenly spaced through the run's list)."""
+    """At most this many training poses per NeRF."""
     width: int = 400
     """Rendered image width in pixels (SIFT needs texture at this size: 200x150 is too small for room scenes)."""
     height: int = 300
@@ -212,7 +213,12 @@ def sample_poses(renderer: Renderer, cfg: PoseSamplingConfig) -> tuple[Float[np.
         if not np.isfinite(train).all():
             raise RegistrationError(f"{renderer.name}: its training poses contain NaN or inf")
         if len(train) > cfg.max_training_poses:
-            train = train[np.round(np.linspace(0, len(train) - 1, cfg.max_training_poses)).astype(int)]
+            if cfg.seed == 0:
+                pick = np.round(np.linspace(0, len(train) - 1, cfg.max_training_poses)).astype(int)
+            else:
+                rng = np.random.default_rng(cfg.seed)
+                pick = np.sort(rng.choice(len(train), cfg.max_training_poses, replace=False))
+            train = train[pick]
         poses.append(train)
         sources += ["training"] * len(train)
     if cfg.source not in ("hemisphere", "training", "both"):

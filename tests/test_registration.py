@@ -131,6 +131,19 @@ def test_renderer_protocol(oc_renderers):
     assert np.isclose(np.linalg.norm(train[:, :3, 3], axis=-1).mean(), 1.0)
 
 
+def test_training_pose_subsets(oc_renderers):
+    train = oc_renderers[0].training_poses()
+    pick = lambda seed: reg.sample_poses(oc_renderers[0], reg.PoseSamplingConfig(  # noqa: E731
+        source="training", max_training_poses=5, seed=seed))[0]  # fmt: skip
+    even = pick(0)
+    np.testing.assert_array_equal(even, train[[0, 4, 8, 11, 15]])  # evenly spaced, first and last included
+    a, b, c = pick(3), pick(3), pick(4)
+    np.testing.assert_array_equal(a, b)  # deterministic by seed
+    assert not np.array_equal(a, c) and not np.array_equal(a, even)
+    idx = [int(np.flatnonzero((train == p).all(axis=(1, 2)))[0]) for p in a]
+    assert idx == sorted(set(idx)) and len(idx) == 5  # distinct training poses, in capture order
+
+
 def test_object_centric_two_nerfs_recovers_ground_truth(oc_record):
     rec = oc_record
     a, b = rec["nerfs"]
