@@ -57,6 +57,8 @@ from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIn
 from nerfstudio.engine.trainer import TrainerConfig
 from torch.nn import Parameter
 
+from nerfuser_ns.registration import RegistrationConfig
+
 SPEC_FILENAME = "fusion.json"
 """Name of the spec file looked up when ``--data`` is a folder."""
 REGISTRATION_FILENAME = "registration.json"
@@ -260,17 +262,18 @@ def write_registration(path: Path | str, nerfs: list[NerfEntry]) -> Path:
     return path
 
 
-def run_registration(config_paths: list[Path], names: list[str], output: Path) -> list[NerfEntry]:
-    """Registers the runs (NeRFuser Sec. 3.2, ``nerfuser_ns.registration`` with its default settings), writes the
-    registration file at ``output`` (its renders and SfM files in ``<output stem>_work/``) and reads it back.
-
-    For other settings, run ``ns-nerfuser-register`` yourself and name its output under ``registration``.
+def run_registration(
+    config_paths: list[Path], names: list[str], output: Path, config: RegistrationConfig | None = None
+) -> list[NerfEntry]:
+    """Registers the runs (NeRFuser Sec. 3.2, ``nerfuser_ns.registration`` with ``config``, default settings when
+    None), writes the registration file at ``output`` (its renders and SfM files in ``<output stem>_work/``) and
+    reads it back. ``ns-train nerfuser`` passes ``--pipeline.datamanager.registration.*`` here.
     """
     from nerfuser_ns import registration
     from nerfuser_ns.runs import RunLoadError
 
     try:
-        registration.register_runs(config_paths, output, names=names, device="cpu")
+        registration.register_runs(config_paths, output, config=config, names=names, device="cpu")
     except (registration.RegistrationError, RunLoadError) as e:
         raise FusionSpecError(
             _one_line(f"{output}: automatic registration failed: {e} (run ns-nerfuser-register with other settings)")
@@ -282,11 +285,13 @@ def run_registration(config_paths: list[Path], names: list[str], output: Path) -
 # Fusion spec
 
 
-def read_fusion_spec(path: Path | str, register: bool = True) -> FusionSpec:
+def read_fusion_spec(
+    path: Path | str, register: bool = True, registration_config: RegistrationConfig | None = None
+) -> FusionSpec:
     """Reads and validates a fusion spec (or a registration file used as one); see the module docstring.
 
     Nothing is written, except the registration file when it is absent and ``register`` is True (and only after
-    the spec itself validated).
+    the spec itself validated); ``registration_config`` holds that registration's settings.
 
     Raises:
         FusionSpecError: with a one-line message naming the file and what to fix.
@@ -351,7 +356,7 @@ def read_fusion_spec(path: Path | str, register: bool = True) -> FusionSpec:
         registration_path = None
     elif register:
         names = _default_names(spec_runs)
-        nerfs = run_registration([c for _, c in spec_runs], names, registration_path)
+        nerfs = run_registration([c for _, c in spec_runs], names, registration_path, registration_config)
     else:
         raise _err(path, f"no registration file at {registration_path}; run ns-nerfuser-register first")
     return FusionSpec(
@@ -545,6 +550,9 @@ class NerfuserDataManagerConfig(VanillaDataManagerConfig):
     """How the spec's test images are read (``data`` is taken from the spec)."""
     register_if_missing: bool = True
     """Run the registration when the spec's registration file does not exist (and write it there)."""
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    """Settings of that registration (as ns-nerfuser-register's options; e.g. ``sampling.source training`` where
+    hemisphere views of the NeRFs do not overlap)."""
 
 
 class NerfuserDataManager(DataManager):
@@ -571,7 +579,8 @@ class NerfuserDataManager(DataManager):
         self.world_size = world_size
         self.local_rank = local_rank
         self.test_mode = test_mode
-        self.spec = read_fusion_spec(config.data, register=config.register_if_missing)
+        self.spec = read_fusion_spec(config.data, register=config.register_if_missing,
+                                     registration_config=config.registration)  # fmt: skip
         metadata = {METADATA_KEY: self.spec}
         if self.spec.test_data is not None:
             self.train_dataparser_outputs = load_test_dataparser_outputs(self.spec, metadata, config.dataparser)

@@ -122,10 +122,11 @@ def test_missing_registration_runs_registration(tmp_path, two_runs, monkeypatch)
     """No registration file and several runs: nerfuser_ns.registration.register_runs is called and its file read."""
     import nerfuser_ns.registration as registration
 
-    calls = []
+    calls, configs = [], []
 
     def fake_register_runs(config_paths, output, names=None, device="cpu", **kwargs):
         calls.append((list(config_paths), Path(output), list(names)))
+        configs.append(kwargs.get("config"))
         entries = [NerfEntry(n, Path(c), np.eye(4)) for n, c in zip(names, config_paths, strict=True)]
         fdata.write_registration(output, entries)
         return {}
@@ -138,6 +139,12 @@ def test_missing_registration_runs_registration(tmp_path, two_runs, monkeypatch)
     spec = read_fusion_spec(spec_path)
     assert calls == [(list(two_runs), tmp_path / "registration.json", ["nerf0", "nerf1"])]
     assert [n.config_path for n in spec.nerfs] == list(two_runs)
+    assert configs == [None]  # the registration's defaults
+    # settings reach the registration (ns-train nerfuser: --pipeline.datamanager.registration.*)
+    (tmp_path / "registration.json").unlink()
+    settings = registration.RegistrationConfig(sampling=registration.PoseSamplingConfig(source="training"))
+    read_fusion_spec(spec_path, registration_config=settings)
+    assert configs[-1] is settings
 
     def failing(*args, **kwargs):
         raise registration.RegistrationError("nerf1: only 2 of 32 views registered")
