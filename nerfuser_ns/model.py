@@ -390,6 +390,11 @@ class NerfuserModel(Model):
         self.viewer_tau = ViewerNumber("NeRFuser tau (0: off)", float(self.tau or 0.0), cb_hook=set_tau)
         self.viewer_reference = ViewerNumber("NeRFuser reference NeRF", int(self.reference_nerf), cb_hook=set_reference)
 
+        from nerfuser_ns.viewer import NerfuserSceneControl
+
+        # Scene groups (NeRF frames, registration and test cameras), CPU defaults: set up by the viewer, if any.
+        self.viewer_scene = NerfuserSceneControl(self)
+
     # --- nerfstudio Model API ---------------------------------------------------------------------------------------
 
     def get_param_groups(self) -> dict[str, list[Parameter]]:

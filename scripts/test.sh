@@ -3,6 +3,7 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="$(bash "$ROOT/scripts/setup_env.sh" | tail -n 1)"
+bash "$ROOT/scripts/setup_browser.sh"  # headless chromium for tests/test_viewer.py
 cd "$ROOT"
 set +e
 "$VENV/bin/python" -m pytest -q "$@"

@@ -1,0 +1,647 @@
+"""The fused scene in nerfstudio's live viewer (viser): how it was put together, and a launcher from a fusion spec.
+
+``ns-viewer --load-config <fused run>/config.yml`` works as for any run: the ``nerfuser`` model carries a
+:class:`NerfuserSceneControl` (a nerfstudio ``ViewerControl``), which the viewer sets up when it starts. It adds
+
+* a "NeRFuser scene" folder to the panel with one toggle per scene group and a legend of the share colours;
+* the scene groups: each NeRF's frame (axes at its origin, one NeRF unit long, i.e. scaled by its registered scale,
+  with a sphere in its share colour), the cameras the registration rendered from (read from the registration file's
+  ``render_folder``, in each NeRF's colour, grey where the view was left out of the SfM) and the test cameras;
+* CPU-friendly render settings (a small maximum resolution, a warmed-up first render) and an offline page.
+
+The blend controls (method, the NeRF shown by ``nerf``, gamma, tau) are the model's own viewer elements
+(:meth:`nerfuser_ns.model.NerfuserModel._add_viewer_controls`); "Output type" ``nerf_share`` shows each NeRF's
+weight share in its colour.
+
+:func:`start_viewer` opens the same viewer on a fused run or straight from a fusion spec (``ns-nerfuser-view``).
+
+Frames: everything is drawn in the common frame, in viser units (nerfstudio's x10, ``VISER_NERFSTUDIO_SCALE_RATIO``).
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import shutil
+import tempfile
+import threading
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from jaxtyping import Float
+from nerfstudio.viewer.viewer_elements import ViewerControl
+
+if TYPE_CHECKING:
+    from nerfstudio.viewer.viewer import Viewer
+
+    from nerfuser_ns.data import FusionSpec
+    from nerfuser_ns.model import NerfuserModel
+
+VISER_SCALE = 10.0
+"""nerfstudio's viewer draws nerfstudio units x10 (``VISER_NERFSTUDIO_SCALE_RATIO``)."""
+CPU_MAX_RES = 256
+"""Default "Max res" of the viewer when the model renders on the CPU (nerfstudio's default, 512, takes ~4x longer)."""
+
+# Names of the share colours (nerfuser_ns.model._PALETTE, tab10), for the legend.
+_COLOUR_NAMES = ["blue", "orange", "green", "red", "purple", "brown", "pink", "grey", "olive", "cyan"]
+_TEST_COLOUR = (255, 211, 105)  # nerfstudio's brand colour: the test cameras
+_DROPPED_COLOUR = (140, 140, 140)  # registration views left out of the SfM (too little opacity)
+
+
+class ViewerSetupError(ValueError):
+    """The viewer cannot be opened on this input; the message (one line) names the path and what to do."""
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Scene content (plain data: testable without a viewer)
+
+
+@dataclass
+class CameraSet:
+    """Cameras in the common frame (camera-to-world, OpenGL axes as nerfstudio)."""
+
+    c2w: Float[np.ndarray, "n 4 4"]
+    fov_y: Float[np.ndarray, " n"]
+    """Vertical field of view (radians)."""
+    aspect: Float[np.ndarray, " n"]
+    """Width / height."""
+    kept: np.ndarray | None = None
+    """Registration views: whether the view went into the SfM (None: all)."""
+
+    def __len__(self) -> int:
+        return len(self.c2w)
+
+
+@dataclass
+class NerfFrame:
+    """One NeRF of the fusion as drawn: its name, its SIM(3) into the common frame, its registration cameras."""
+
+    name: str
+    nerf_to_common: Float[np.ndarray, "4 4"]
+    registration_cameras: CameraSet | None = None
+
+    @property
+    def scale(self) -> float:
+        return float(np.cbrt(np.linalg.det(self.nerf_to_common[:3, :3])))
+
+    @property
+    def rotation(self) -> Float[np.ndarray, "3 3"]:
+        return self.nerf_to_common[:3, :3] / self.scale
+
+    @property
+    def origin(self) -> Float[np.ndarray, "3"]:
+        return self.nerf_to_common[:3, 3].copy()
+
+
+@dataclass
+class FusedScene:
+    """What :class:`NerfuserSceneControl` draws."""
+
+    nerfs: list[NerfFrame]
+    test_cameras: CameraSet | None = None
+    notes: list[str] = field(default_factory=list)
+    """Why something is missing (e.g. the registration's render folder was deleted); shown once on the console."""
+
+
+def _camera_set(c2w: np.ndarray, fx: np.ndarray, fy: np.ndarray, width: np.ndarray, height: np.ndarray) -> CameraSet:
+    c2w = np.asarray(c2w, dtype=np.float64)
+    if c2w.shape[-2] == 3:
+        c2w = np.concatenate([c2w, np.broadcast_to([0.0, 0.0, 0.0, 1.0], (*c2w.shape[:-2], 1, 4))], axis=-2)
+    n = len(c2w)
+    fy = np.broadcast_to(np.asarray(fy, dtype=np.float64).reshape(-1), (n,))
+    width = np.broadcast_to(np.asarray(width, dtype=np.float64).reshape(-1), (n,))
+    height = np.broadcast_to(np.asarray(height, dtype=np.float64).reshape(-1), (n,))
+    return CameraSet(c2w=c2w, fov_y=2 * np.arctan(0.5 * height / fy), aspect=width / height)
+
+
+def read_render_folder(folder: Path, nerf_to_common: np.ndarray) -> CameraSet:
+    """The registration renders of one NeRF (``<render_folder>/poses.json``, written by nerfuser_ns.registration),
+    mapped into the common frame.
+
+    Raises:
+        ViewerSetupError: the folder or its poses.json is missing or unreadable.
+    """
+    from nerfuser_ns.sim3 import transform_poses
+
+    path = Path(folder) / "poses.json"
+    try:
+        meta = json.loads(path.read_text())
+        views = meta["views"]
+        c2w = np.array([v["c2w"] for v in views], dtype=np.float64).reshape(-1, 4, 4)
+        kept = np.array([bool(v.get("kept", True)) for v in views], dtype=bool)
+        intr = meta["intrinsics"]
+    except FileNotFoundError:
+        raise ViewerSetupError(f"{path}: no such file (the registration's renders were moved or deleted)") from None
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ViewerSetupError(f"{path}: not a readable poses.json ({type(e).__name__}: {e})") from None
+    cams = _camera_set(transform_poses(nerf_to_common, c2w), intr["fx"], intr["fy"], intr["width"], intr["height"])
+    cams.kept = kept
+    return cams
+
+
+def _registration_render_folders(registration_path: Path) -> list[tuple[str, Path | None, Path | None]]:
+    """``(name, config, render_folder)`` per NeRF of a registration file (render_folder None when absent)."""
+    data = json.loads(registration_path.read_text())
+    out = []
+    for item in data.get("nerfs", []):
+        folder = item.get("render_folder")
+        config = item.get("config")
+        if folder is not None:
+            folder = Path(folder)
+            if not folder.is_absolute():
+                folder = registration_path.parent / folder
+            if not folder.is_dir():
+                # The work folder moved with the registration file: <stem>_work/renders/<key> beside it.
+                moved = registration_path.with_name(registration_path.stem + "_work") / "renders" / folder.name
+                folder = moved if moved.is_dir() else folder
+        out.append((str(item.get("name")), None if config is None else Path(config), folder))
+    return out
+
+
+def short_name(name: str) -> str:
+    """A NeRF's name as labelled in the viewer: a run path (registrations name runs by their config.yml) becomes
+    ``experiment/method/timestamp``."""
+    parts = Path(name).parts
+    if len(parts) > 1 and parts[-1] in ("config.yml", "config.yaml"):
+        parts = parts[:-1]
+    return "/".join(parts[-3:]) if len(parts) > 3 else name
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.samefile(b)
+    except OSError:
+        return a.absolute() == b.absolute()
+
+
+def registration_cameras(spec: FusionSpec) -> tuple[list[CameraSet | None], list[str]]:
+    """Per NeRF of the spec, the cameras its registration rendered from (common frame), and notes on what is missing.
+
+    Entries are matched to the spec's NeRFs by run (config.yml), then by name. A hand-written registration (no
+    ``render_folder``) has none.
+    """
+    cams: list[CameraSet | None] = [None] * len(spec.nerfs)
+    notes: list[str] = []
+    if spec.registration_path is None or not Path(spec.registration_path).is_file():
+        return cams, notes
+    try:
+        entries = _registration_render_folders(Path(spec.registration_path))
+    except (OSError, ValueError, TypeError, AttributeError) as e:
+        return cams, [f"{spec.registration_path}: registration cameras not shown ({type(e).__name__}: {e})"]
+    for i, nerf in enumerate(spec.nerfs):
+        match = [e for e in entries if e[1] is not None and _same_file(e[1], nerf.config_path)]
+        match = match or [e for e in entries if e[0] == nerf.name]
+        if not match or match[0][2] is None:
+            continue
+        try:
+            cams[i] = read_render_folder(match[0][2], nerf.nerf_to_common)
+        except ViewerSetupError as e:
+            notes.append(f"{nerf.name}: registration cameras not shown: {e}")
+    return cams, notes
+
+
+def fused_scene(model: NerfuserModel, datamanager: Any = None) -> FusedScene:
+    """What to draw for a fused model: its NeRFs (as rendered), their registration cameras and the test cameras.
+
+    The spec comes from the datamanager (``ns-viewer`` of a fused run, :func:`start_viewer`) or the model's
+    ``fusion_spec``; without one (models fused in code) only the NeRF frames are drawn.
+    """
+    T = model.nerf_to_common.detach().cpu().double().numpy()
+    nerfs = [NerfFrame(name, T[i]) for i, name in enumerate(model.nerf_names)]
+    scene = FusedScene(nerfs)
+    spec = getattr(datamanager, "spec", None)
+    if spec is None and getattr(model.config, "fusion_spec", None) is not None:
+        from nerfuser_ns.data import FusionSpecError, read_fusion_spec
+
+        try:
+            spec = read_fusion_spec(model.config.fusion_spec, register=False)
+        except FusionSpecError as e:
+            scene.notes.append(f"registration and test cameras not shown: {e}")
+    if spec is None:
+        return scene
+    if [n.name for n in spec.nerfs] == model.nerf_names:
+        cams, notes = registration_cameras(spec)
+        scene.notes += notes
+        for nerf, c in zip(scene.nerfs, cams, strict=True):
+            nerf.registration_cameras = c
+    else:
+        scene.notes.append(f"registration cameras not shown: the model's NeRFs are not those of {spec.spec_path}")
+    eval_dataset = getattr(datamanager, "eval_dataset", None)
+    if spec.test_data is not None and eval_dataset is not None:
+        c = eval_dataset.cameras
+        scene.test_cameras = _camera_set(
+            c.camera_to_worlds.detach().cpu().numpy(),
+            c.fx.cpu().numpy(),
+            c.fy.cpu().numpy(),
+            c.width.cpu().numpy(),
+            c.height.cpu().numpy(),
+        )
+    return scene
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# An offline page
+
+
+_client_root: Path | None = None
+_client_root_lock = threading.Lock()
+
+
+def offline_client_root(build_dir: Path) -> Path:
+    """viser's client build with its analytics tag removed (viser 0.2.7's index.html loads Google's gtag.js, the
+    only outside request the page makes). The other files are links into the installed package."""
+    global _client_root
+    with _client_root_lock:
+        if _client_root is not None and _client_root.is_dir():
+            return _client_root
+        html = (build_dir / "index.html").read_text()
+        start = html.find("<!-- Google tag (gtag.js) -->")
+        end = html.find("</script>", html.find("</script>", start) + 1) if start >= 0 else -1
+        if start < 0 or end < 0:
+            return build_dir  # another viser build: nothing to remove
+        root = Path(tempfile.mkdtemp(prefix="nerfuser-viser-client-"))
+        atexit.register(shutil.rmtree, root, True)
+        for entry in build_dir.iterdir():
+            if entry.name != "index.html":
+                (root / entry.name).symlink_to(entry)
+        (root / "index.html").write_text(html[:start] + html[end + len("</script>") :])
+        _client_root = root
+        return root
+
+
+def _serve_offline_page() -> None:
+    """Make every viser server of this process serve :func:`offline_client_root` (idempotent)."""
+    from viser import infra
+
+    init = infra.WebsockServer.__init__
+    if getattr(init, "_nerfuser_offline", False):
+        return
+
+    def patched(self, *args: Any, **kwargs: Any) -> None:
+        init(self, *args, **kwargs)
+        root = self._http_server_root
+        if root is not None and (Path(root) / "index.html").is_file():
+            try:
+                self._http_server_root = offline_client_root(Path(root))
+            except OSError as e:  # a read-only temp dir: serve the page as it is
+                warnings.warn(f"nerfuser viewer: serving viser's page unchanged ({e})", stacklevel=2)
+
+    patched._nerfuser_offline = True  # type: ignore[attr-defined]
+    infra.WebsockServer.__init__ = patched  # type: ignore[method-assign]
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The viewer control
+
+
+def _wxyz(c2w: np.ndarray) -> np.ndarray:
+    """viser's orientation of an OpenGL camera-to-world (viser cameras look along +z, OpenGL ones along -z)."""
+    import viser.transforms as vtf
+
+    R = np.asarray(c2w, dtype=np.float64)[:3, :3]
+    u, _, vt = np.linalg.svd(R)  # re-orthonormalise (float32 round trips)
+    return (vtf.SO3.from_matrix(u @ vt) @ vtf.SO3.from_x_radians(np.pi)).wxyz
+
+
+class NerfuserSceneControl(ViewerControl):
+    """Scene groups, toggles, CPU defaults and an offline page for a fused model in nerfstudio's viewer.
+
+    The model creates it (``model.viewer_scene``); nerfstudio's viewer finds every ``ViewerControl`` of the pipeline
+    and calls :meth:`_setup` once it is running. Nothing happens without a viewer.
+    """
+
+    def __init__(self, model: NerfuserModel, cpu_max_res: int = CPU_MAX_RES, warm_up: bool = True) -> None:
+        super().__init__()
+        self._model = model
+        self.cpu_max_res = cpu_max_res
+        self.warm_up = warm_up
+        self.scene: FusedScene | None = None
+        self.groups: dict[str, list[Any]] = {"nerf_frames": [], "registration_cameras": [], "test_cameras": []}
+        """Scene handles of each group (what the toggles hide and show)."""
+        self.toggles: dict[str, Any] = {}
+        """The panel's checkbox handle of each group."""
+        self.axes_lengths: list[float] = []
+        """Axes length of each NeRF's frame, in viser units (``VISER_SCALE`` x its registered scale)."""
+        self.warm_up_seconds: float | None = None
+        # ns-viewer builds the model before the viser server: the page it serves is fixed now.
+        _serve_offline_page()
+
+    def _setup(self, viewer: Viewer) -> None:
+        super()._setup(viewer)
+        model = self._model
+        server = viewer.viser_server
+        self._offline_theme()
+        if model.device.type == "cpu" and self.cpu_max_res:
+            viewer.control_panel._max_res.value = min(int(viewer.control_panel.max_res), int(self.cpu_max_res))
+        self.scene = scene = fused_scene(model, getattr(viewer.pipeline, "datamanager", None))
+        for note in scene.notes:
+            print(f"nerfuser viewer: {note}")
+        with server.atomic():
+            self._draw(server, scene)
+        self._add_panel(server, scene)
+        server.on_client_connect(self._initial_view)
+        if self.warm_up:
+            self._warm_up()
+
+    # --- panel ------------------------------------------------------------------------------------------------------
+
+    def _offline_theme(self) -> None:
+        """nerfstudio's theme without its title-bar logo (an image fetched from docs.nerf.studio)."""
+        import viser.theme
+
+        buttons = (
+            viser.theme.TitlebarButton(text="Getting Started", icon=None, href="https://nerf.studio"),
+            viser.theme.TitlebarButton(
+                text="Github", icon="GitHub", href="https://github.com/nerfstudio-project/nerfstudio"
+            ),
+            viser.theme.TitlebarButton(text="Documentation", icon="Description", href="https://docs.nerf.studio"),
+        )
+        self.viser_server.gui.configure_theme(
+            titlebar_content=viser.theme.TitlebarConfig(buttons=buttons, image=None),
+            control_layout="collapsible",
+            dark_mode=True,
+            brand_color=(255, 211, 105),
+        )
+
+    def _add_panel(self, server: Any, scene: FusedScene) -> None:
+        n_reg = sum(len(n.registration_cameras) for n in scene.nerfs if n.registration_cameras is not None)
+        n_test = 0 if scene.test_cameras is None else len(scene.test_cameras)
+        labels = {
+            "nerf_frames": f"NeRF frames ({len(scene.nerfs)})",
+            "registration_cameras": f"Registration cameras ({n_reg})",
+            "test_cameras": f"Test cameras ({n_test})",
+        }
+        hints = {
+            "nerf_frames": "Each NeRF's axes at its origin, one NeRF unit long (its registered scale)",
+            "registration_cameras": "The views the registration rendered (grey: left out of the SfM)",
+            "test_cameras": "The fusion spec's test views (test_data)",
+        }
+        legend = "  \n".join(
+            f"{i}: **{short_name(n.name)}** ({_COLOUR_NAMES[i % len(_COLOUR_NAMES)]}, scale {n.scale:.3g})"
+            for i, n in enumerate(scene.nerfs)
+        )
+        with server.gui.add_folder("NeRFuser scene"):
+            for key, label in labels.items():
+                toggle = server.gui.add_checkbox(label, True, hint=hints[key], disabled=not self.groups[key])
+                toggle.on_update(lambda event, key=key: self.set_group_visible(key, event.target.value))
+                self.toggles[key] = toggle
+            server.gui.add_markdown(
+                "NeRFs (the `nerf_share` output's colours; the `nerf` method shows the reference NeRF):  \n" + legend
+            )
+
+    def set_group_visible(self, group: str, visible: bool) -> None:
+        """Show or hide one scene group (``nerf_frames``, ``registration_cameras``, ``test_cameras``)."""
+        if group not in self.groups:
+            raise KeyError(f"no scene group {group!r}; choose one of {sorted(self.groups)}")
+        with self.viser_server.atomic():
+            for handle in self.groups[group]:
+                handle.visible = bool(visible)
+
+    # --- scene ------------------------------------------------------------------------------------------------------
+
+    def _draw(self, server: Any, scene: FusedScene) -> None:
+        from nerfuser_ns.model import _PALETTE
+
+        palette = (_PALETTE.numpy() * 255).round().astype(int)
+        for i, nerf in enumerate(scene.nerfs):
+            colour = tuple(int(c) for c in palette[i % len(palette)])
+            length = VISER_SCALE * nerf.scale  # one NeRF unit: the NeRF's [-1, 1] box reaches the axes' tips
+            base = f"/nerfuser/nerf_frames/{i}"
+            frame = server.scene.add_frame(
+                base,
+                wxyz=_frame_wxyz(nerf.rotation),
+                position=nerf.origin * VISER_SCALE,
+                axes_length=length,
+                axes_radius=0.02 * length,
+            )
+            self.axes_lengths.append(length)
+            dot = server.scene.add_icosphere(f"{base}/origin", radius=0.06 * length, color=colour)
+            label = server.scene.add_label(f"{base}/name", text=f"{i}: {short_name(nerf.name)}")
+            self.groups["nerf_frames"] += [frame, dot, label]
+            cams = nerf.registration_cameras
+            if cams is not None:
+                for k in range(len(cams)):
+                    kept = cams.kept is None or bool(cams.kept[k])
+                    self.groups["registration_cameras"].append(
+                        server.scene.add_camera_frustum(
+                            f"/nerfuser/registration_cameras/{i}/{k:05d}",
+                            fov=float(cams.fov_y[k]),
+                            aspect=float(cams.aspect[k]),
+                            scale=0.04 * length,
+                            color=colour if kept else _DROPPED_COLOUR,
+                            wxyz=_wxyz(cams.c2w[k]),
+                            position=cams.c2w[k][:3, 3] * VISER_SCALE,
+                        )
+                    )
+        if scene.test_cameras is not None:
+            cams = scene.test_cameras
+            size = 0.04 * VISER_SCALE * (np.median([n.scale for n in scene.nerfs]) if scene.nerfs else 1.0)
+            for k in range(len(cams)):
+                self.groups["test_cameras"].append(
+                    server.scene.add_camera_frustum(
+                        f"/nerfuser/test_cameras/{k:05d}",
+                        fov=float(cams.fov_y[k]),
+                        aspect=float(cams.aspect[k]),
+                        scale=float(size),
+                        color=_TEST_COLOUR,
+                        wxyz=_wxyz(cams.c2w[k]),
+                        position=cams.c2w[k][:3, 3] * VISER_SCALE,
+                    )
+                )
+
+    def start_view(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where a new browser tab starts, ``(position, look_at)`` in the common frame: a little behind the first test
+        camera (else the reference NeRF's first registration view the SfM kept), looking where it looks; without
+        cameras, the NeRF origins from above. Not AT a camera: its frustum and image would cover the render."""
+        scene = self.scene
+        if scene is None or not scene.nerfs:
+            return None
+        unit = float(np.median([n.scale for n in scene.nerfs]))  # NeRF units in common units
+        c2w = None
+        if scene.test_cameras is not None and len(scene.test_cameras):
+            c2w = scene.test_cameras.c2w[0]
+        else:
+            for nerf in scene.nerfs:
+                cams = nerf.registration_cameras
+                if cams is not None and len(cams):
+                    kept = np.flatnonzero(cams.kept) if cams.kept is not None else np.arange(len(cams))
+                    c2w = cams.c2w[kept[0] if len(kept) else 0]
+                    break
+        if c2w is None:
+            centre = np.mean([n.origin for n in scene.nerfs], axis=0)
+            return centre + unit * np.array([1.5, -1.5, 1.0]), centre
+        back = c2w[:3, 2] / np.linalg.norm(c2w[:3, 2])  # OpenGL cameras look along -z
+        return c2w[:3, 3] + 0.15 * unit * back, c2w[:3, 3] - unit * back
+
+    def _initial_view(self, client: Any) -> None:
+        view = self.start_view()
+        if view is None:
+            return
+        position, look_at = view
+        with client.atomic():
+            client.camera.position = position * VISER_SCALE
+            client.camera.look_at = look_at * VISER_SCALE
+
+    def _warm_up(self) -> None:
+        """One tiny render, so that one-off costs (the CPU fast path's compile, lazy allocations) are paid before
+        the first browser tab connects: its first, low-resolution frame then comes within a second or two."""
+        from nerfuser_ns import runs
+
+        model = self._model
+        start = time.perf_counter()
+        c2w = np.eye(4)  # any view: this render only pays the one-off costs
+        c2w[:3, 3] = model.nerf_origins[0].detach().cpu().numpy() + [0.0, 0.0, float(model.nerf_scales[0])]
+        cams = runs.make_cameras(c2w[None, :3, :], fx=8.0, fy=8.0, cx=4.0, cy=4.0, width=8, height=8)
+        try:
+            runs.render_views(model, cams.to(model.device), outputs=("rgb",), progress=False)
+        except Exception as e:  # noqa: BLE001 - the viewer's own first render will show the error
+            print(f"nerfuser viewer: warm-up render failed ({type(e).__name__}: {e})")
+            return
+        self.warm_up_seconds = time.perf_counter() - start
+
+
+def _frame_wxyz(rotation: np.ndarray) -> np.ndarray:
+    """viser's orientation of a frame with the given rotation (axes: no camera flip)."""
+    import viser.transforms as vtf
+
+    u, _, vt = np.linalg.svd(np.asarray(rotation, dtype=np.float64))
+    return vtf.SO3.from_matrix(u @ vt).wxyz
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Launching
+
+
+@dataclass
+class RunningViewer:
+    """A viewer started by :func:`start_viewer`; :meth:`stop` closes its port and render threads."""
+
+    viewer: Viewer
+    pipeline: Any
+    url: str
+    """Where a browser opens it (``http://host:port``)."""
+    port: int
+    step: int
+    _tmp_dir: Path | None = None
+
+    @property
+    def model(self) -> NerfuserModel:
+        return self.pipeline.model
+
+    @property
+    def scene_control(self) -> NerfuserSceneControl:
+        return self.pipeline.model.viewer_scene
+
+    def stop(self) -> None:
+        for machine in list(self.viewer.render_statemachines.values()):
+            machine.running = False
+        server = self.viewer.viser_server
+        if getattr(server._websock_server, "_ws_server", None) is not None:  # not stopped yet
+            server.stop()
+        if self._tmp_dir is not None:
+            shutil.rmtree(self._tmp_dir, ignore_errors=True)
+            self._tmp_dir = None
+
+
+def _is_run(path: Path) -> bool:
+    return path.suffix in (".yml", ".yaml") or (path.is_dir() and (path / "config.yml").is_file())
+
+
+def load_fused_pipeline(
+    path: Path | str, device: str = "cpu", register_if_missing: bool = True
+) -> tuple[Any, Any, int, Path | None]:
+    """``(config, pipeline, step, run folder)`` of a fused run (``ns-train nerfuser``'s config.yml or its folder) or
+    of a fusion spec (a JSON file, a folder holding fusion.json, or a registration file), in eval mode.
+
+    A spec needs no run folder: the pipeline is the ``nerfuser`` method's, built in memory (run folder None).
+
+    Raises:
+        ViewerSetupError, FusionSpecError, RunLoadError: with a one-line message naming the file.
+    """
+    from nerfuser_ns import runs
+    from nerfuser_ns.model import NerfuserModelConfig
+
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise ViewerSetupError(f"{path}: no such file or folder; pass a fused run's config.yml or a fusion spec")
+    if _is_run(path):
+        config_path = runs.resolve_config_path(path)
+        config = runs.read_config(config_path)
+        if not isinstance(config.pipeline.model, NerfuserModelConfig):
+            raise ViewerSetupError(
+                f"{config_path}: a {config.method_name} run, not a fused one; open it with ns-viewer, "
+                "or list it under 'runs' in a fusion spec"
+            )
+        loaded = runs.load_run(config_path, device=device, with_data=True, test_mode="test")
+        return loaded.config, loaded.pipeline, loaded.step, loaded.config_path.parent
+
+    from nerfuser_ns.method_configs.nerfuser import nerfuser_config
+
+    data = path.absolute()
+    config = nerfuser_config()
+    config.pipeline.datamanager.data = data
+    config.pipeline.datamanager.register_if_missing = register_if_missing
+    config.pipeline.model.fusion_spec = data
+    config.machine.device_type = "cuda" if str(device).startswith("cuda") else "cpu"
+    pipeline = config.pipeline.setup(device=device, test_mode="test")
+    pipeline.eval()
+    return config, pipeline, 0, None
+
+
+def start_viewer(
+    source: Path | str,
+    host: str = "127.0.0.1",
+    port: int | None = None,
+    device: str = "cpu",
+    max_res: int | None = None,
+    register_if_missing: bool = True,
+) -> RunningViewer:
+    """Open nerfstudio's viewer on a fused run or a fusion spec (see :func:`load_fused_pipeline`); returns at once.
+
+    What ``ns-viewer --load-config`` does, without blocking, on ``host`` (loopback by default) and ``port`` (None:
+    7007 or the next free port). ``max_res`` sets the panel's "Max res" (default: :data:`CPU_MAX_RES` on the CPU,
+    nerfstudio's 512 otherwise).
+    """
+    from nerfstudio.configs.base_config import ViewerConfig
+    from nerfstudio.utils import writer
+    from nerfstudio.viewer.viewer import Viewer
+
+    config, pipeline, step, run_dir = load_fused_pipeline(
+        source, device=device, register_if_missing=register_if_missing
+    )
+    tmp_dir = None
+    if run_dir is None:  # the viewer keeps a log file (and its Render tab a config path) beside the run
+        tmp_dir = run_dir = Path(tempfile.mkdtemp(prefix="nerfuser-view-"))
+    viewer_config = ViewerConfig(
+        websocket_host=host, websocket_port=port, num_rays_per_chunk=config.viewer.num_rays_per_chunk
+    )
+    try:
+        viewer = Viewer(
+            viewer_config,
+            log_filename=run_dir / viewer_config.relative_log_filename,
+            datapath=pipeline.datamanager.get_datapath(),
+            pipeline=pipeline,
+            train_lock=threading.Lock(),
+        )
+    except BaseException:
+        if tmp_dir is not None:
+            shutil.rmtree(tmp_dir, ignore_errors=True)
+        raise
+    if max_res is not None:
+        viewer.control_panel._max_res.value = int(max_res)
+    # As ns-viewer: no logging, but the writer's buffer must exist (the viewer times its renders into it).
+    config.logging.local_writer.enable = False
+    writer.setup_local_writer(config.logging, max_iter=config.max_num_iterations)
+    viewer.init_scene(
+        train_dataset=pipeline.datamanager.train_dataset,
+        train_state="completed",
+        eval_dataset=pipeline.datamanager.eval_dataset,
+    )
+    viewer.update_scene(step=step)
+    actual_port = int(viewer.viser_server.get_port())
+    shown_host = "localhost" if host in ("0.0.0.0", "::") else host
+    return RunningViewer(viewer, pipeline, f"http://{shown_host}:{actual_port}", actual_port, step, tmp_dir)
