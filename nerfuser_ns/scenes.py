@@ -1241,3 +1241,14 @@ def write_scene(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return output_dir
+
+
+def generate_scene(output_dir: str | Path, layout: str, supersample: int = 2, **params) -> SceneLayout:
+    """:func:`make_layout` + :func:`write_scene`, skipped when ``output_dir`` already holds this exact scene (its
+    recorded ``ground_truth.json`` equals the one these arguments give). Returns the layout."""
+    built = make_layout(layout, **params)
+    gt_path = Path(output_dir) / "ground_truth.json"
+    expected = json.loads(json.dumps(ground_truth_dict(built, supersample=supersample)))
+    if not gt_path.is_file() or json.loads(gt_path.read_text()) != expected:
+        write_scene(built, output_dir, supersample=supersample)
+    return built

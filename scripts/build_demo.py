@@ -48,82 +48,39 @@ class BuildDemoConfig:
     """Only generate the scene (used by the demo when shipped NeRFs exist)."""
     captures: tuple[str, ...] = ()
     """Which captures to train (default: all of the scene's; the report keeps the entries of the others)."""
+    force: bool = False
+    """Retrain runs whose recorded inputs (dataset, steps, seed) are unchanged (they are kept otherwise)."""
     threads: int = 0
     """torch CPU threads (0: all cores). Use 1 when other jobs share the CPU: oversubscribed OpenMP threads slow
     torch down 5-9x."""
 
 
-def generate_scene(scene_dir: Path, seed: int, layout_name: str = "object-centric", num_captures: int = 3) -> list[str]:
-    """Generate the scene unless the same one is already there; returns its capture names."""
-    import json
-
-    from nerfuser_ns.scenes import ground_truth_dict, make_layout, write_scene
-
-    params = dict(seed=seed, num_views=64, num_test_views=12, width=192, height=144)
-    if layout_name == "street":
-        params["num_captures"] = num_captures
-    layout = make_layout(layout_name, **params)
-    gt_path = scene_dir / "ground_truth.json"
-    # the scene is deterministic: skip the render when the recorded ground truth is identical
-    if not gt_path.is_file() or json.loads(gt_path.read_text()) != json.loads(
-        json.dumps(ground_truth_dict(layout, supersample=2))
-    ):
-        write_scene(layout, scene_dir, supersample=2)
-    return [c.name for c in layout.captures]
-
-
-def slim_checkpoint(path: Path) -> None:
-    """Keep only what loading and rendering need; written atomically."""
-    import torch
-
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    slim = {"step": state["step"], "pipeline": state["pipeline"]}
-    tmp = path.with_suffix(".tmp")
-    torch.save(slim, tmp)
-    os.replace(tmp, path)
-
-
 def main(cfg: BuildDemoConfig) -> None:
     from rich.console import Console
 
+    from nerfuser_ns.scenes import generate_scene
+
     console = Console()
     t0 = time.perf_counter()
-    capture_names = generate_scene(cfg.scene_dir, cfg.seed, cfg.layout, cfg.num_captures)
+    params = dict(seed=cfg.seed, num_views=64, num_test_views=12, width=192, height=144)
+    if cfg.layout == "street":
+        params["num_captures"] = cfg.num_captures
+    layout = generate_scene(cfg.scene_dir, cfg.layout, supersample=2, **params)
     console.print(f"scene: {cfg.scene_dir} ({time.perf_counter() - t0:.1f} s)")
     if cfg.scene_only:
         return
-
     import torch
 
-    from nerfuser_ns.training import train
+    from nerfuser_ns.training import train_captures
 
     torch.set_num_threads(cfg.threads or max(1, os.cpu_count() or 1))
-    out = cfg.runs_dir / "train_report.json"
-    report: dict = json.loads(out.read_text()) if out.is_file() else {"runs": {}}
+    report = train_captures(
+        cfg.scene_dir, cfg.runs_dir, list(cfg.captures) or [c.name for c in layout.captures],
+        max_num_iterations=cfg.max_num_iterations, seed=cfg.train_seed, force=cfg.force, log=console.print,
+    )  # fmt: skip
     report["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__}
     report["command"] = "python scripts/build_demo.py " + " ".join(sys.argv[1:])
-    for name in cfg.captures or capture_names:
-        result = train(
-            data=cfg.scene_dir / name,
-            output_dir=cfg.runs_dir,
-            experiment_name=name,
-            max_num_iterations=cfg.max_num_iterations,
-            seed=cfg.train_seed,
-            timestamp="demo",
-        )
-        metrics = result.trainer.pipeline.get_average_eval_image_metrics()
-        report["runs"][name] = {
-            "config": str(result.config_path),
-            "steps": result.step,
-            "train_seconds": round(result.train_seconds, 1),
-            "eval_psnr": round(float(metrics["psnr"]), 3),
-            "eval_ssim": round(float(metrics["ssim"]), 4),
-            "num_eval_images": len(result.trainer.pipeline.datamanager.eval_dataset),
-            "torch_threads": torch.get_num_threads(),
-        }
-        console.print(f"{name}: {report['runs'][name]}")
-        for ckpt in (result.config_path.parent / "nerfstudio_models").glob("step-*.ckpt"):
-            slim_checkpoint(ckpt)
+    out = cfg.runs_dir / "train_report.json"
     tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps(report, indent=2) + "\n")
     os.replace(tmp, out)

@@ -80,6 +80,7 @@ def main(cfg: DemoConfig) -> None:
             str(cfg.scene_dir),
             "--runs-dir",
             str(cfg.runs_dir),
+            *(["--force"] if cfg.rebuild else []),
         ]
         subprocess.run(build, check=True, cwd=ROOT)
     elif not (cfg.scene_dir / "ground_truth.json").is_file():
