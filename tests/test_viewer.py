@@ -349,7 +349,7 @@ def shows(browser: HeadlessChromium, frame: np.ndarray) -> float:
     return correlation(resized(shown, size), resized(frame, size))
 
 
-def test_page_shows_the_blended_render_low_resolution_first(session):
+def test_page_shows_the_blended_render_low_resolution_first(session, tmp_path):
     running, browser, log = session["running"], session["browser"], session["log"]
     control = running.scene_control
     wait_for(lambda: log.connected_at, 60, "the browser to connect")
@@ -372,14 +372,12 @@ def test_page_shows_the_blended_render_low_resolution_first(session):
     running.viewer.set_camera_visibility(False)
     wait_for(lambda: not any(h.visible for g in control.groups.values() for h in g), 10, "the groups to hide")
     time.sleep(1.5)
-    out = Path(tempfile.gettempdir())
-    Image.fromarray(log.frames[-1]["image"]).save(out / "nerfuser_viewer_frame.png")
-    Image.fromarray(browser.screenshot()).save(out / "nerfuser_viewer_page.png")
-    print("canvas", browser.canvas_box(), "corr", shows(browser, log.frames[-1]["image"]))
     match = wait_for(lambda: (c := shows(browser, log.frames[-1]["image"])) > 0.9 and c, 30, "the page to show it")
     print(f"screenshot vs. the frame sent: correlation {match:.3f}")
     shot = canvas_image(browser)
-    Image.fromarray(shot).save(Path(tempfile.gettempdir()) / "nerfuser_viewer_test.png")
+    Image.fromarray(browser.screenshot()).save(tmp_path / "page.png")  # for a person to look at
+    Image.fromarray(log.frames[-1]["image"]).save(tmp_path / "frame.png")
+    print(f"page and frame: {tmp_path}")
     assert shot.astype(np.float32).std() / 255 > 0.08
 
     assert not browser.outside_requests(), f"the page made outside requests: {browser.outside_requests()}"
@@ -499,7 +497,7 @@ def page_text(browser: HeadlessChromium) -> str:
     return browser.call("Runtime.evaluate", expression="document.body.innerText")["result"].get("value", "")
 
 
-def test_ns_viewer_shows_a_fused_run(fused_run, browser, session):
+def test_ns_viewer_shows_a_fused_run(fused_run, browser):
     """nerfstudio's own command on the fused run: the page shows the blended render and the NeRFuser panel."""
     port = free_port()
     command = Command(
