@@ -579,8 +579,9 @@ class NerfuserDataManager(DataManager):
         self.world_size = world_size
         self.local_rank = local_rank
         self.test_mode = test_mode
+        # getattr: fused runs saved before the field existed have no ``registration`` in their config.yml
         self.spec = read_fusion_spec(config.data, register=config.register_if_missing,
-                                     registration_config=config.registration)  # fmt: skip
+                                     registration_config=getattr(config, "registration", None))  # fmt: skip
         metadata = {METADATA_KEY: self.spec}
         if self.spec.test_data is not None:
             self.train_dataparser_outputs = load_test_dataparser_outputs(self.spec, metadata, config.dataparser)
