@@ -439,6 +439,12 @@ class NerfuserModel(Model):
         outputs = self._blend(flat, self.nerf_samples(flat))
         return {k: v.reshape(*shape, v.shape[-1]) for k, v in outputs.items()}
 
+    def blend_samples(self, ray_bundle: RayBundle, per_nerf: list[tuple[NerfSamples, Tensor]]) -> dict[str, Tensor]:
+        """Blends samples from :meth:`nerf_samples` (flat rays) under the current settings: re-blending the same
+        samples with other settings (a gamma sweep) needs no new sub-model queries."""
+        self._check_settings()
+        return self._blend(ray_bundle, per_nerf)
+
     # --- blending ---------------------------------------------------------------------------------------------------
 
     def _blend(self, ray_bundle: RayBundle, per_nerf: list[tuple[NerfSamples, Tensor]]) -> dict[str, Tensor]:

@@ -150,3 +150,16 @@ def test_bench_blending_script(tiny, tmp_path):
     assert not list(out.parent.glob("*.tmp"))
     bad = subprocess.run(cmd[:3] + ["nope=/nonexistent:/nonexistent"], capture_output=True, text=True)
     assert bad.returncode != 0 and "ground_truth.json: no ground truth" in bad.stderr
+
+
+def test_gamma_sweep_matches_separate_renders(tiny, models):
+    cams, target = tiny.test_views(max_views=1)
+    T = tiny.nerf_to_common()
+    sweep = evaluation.gamma_sweep(models, T, cams, target, gammas=[0.5, 20.0], methods=("nearest", "idw-sample"))
+    assert set(sweep) == {0.5, 20.0}
+    for g in (0.5, 20.0):
+        one = evaluation.blend_metrics(models, T, cams, target, gamma=g, methods=("nearest", "idw-sample"))
+        for m in ("nearest", "idw-sample"):
+            assert sweep[g][m]["psnr"] == pytest.approx(one[m]["psnr"], abs=1e-3)
+    assert sweep[0.5]["nearest"]["psnr"] == pytest.approx(sweep[20.0]["nearest"]["psnr"], abs=1e-6)  # no gamma
+    assert sweep[0.5]["idw-sample"]["psnr"] != pytest.approx(sweep[20.0]["idw-sample"]["psnr"], abs=1e-4)
