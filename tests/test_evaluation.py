@@ -163,3 +163,44 @@ def test_gamma_sweep_matches_separate_renders(tiny, models):
             assert sweep[g][m]["psnr"] == pytest.approx(one[m]["psnr"], abs=1e-3)
     assert sweep[0.5]["nearest"]["psnr"] == pytest.approx(sweep[20.0]["nearest"]["psnr"], abs=1e-6)  # no gamma
     assert sweep[0.5]["idw-sample"]["psnr"] != pytest.approx(sweep[20.0]["idw-sample"]["psnr"], abs=1e-4)
+
+
+def test_evaluate_quick_mode_writes_every_section_and_caches(tmp_path):
+    """``scripts/evaluate.py --quick``: every section computed, a re-run reuses every cached result, and a changed
+    input (the gammas) recomputes only what depends on it."""
+    out = tmp_path / "eval"
+    cmd = [sys.executable, str(ROOT / "scripts/evaluate.py"), "--quick", "--output-dir", str(out)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    first = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env)
+    assert first.returncode == 0, first.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["quick"] and report["sections_done"] == ["registration", "blending", "gamma", "pose_ablation", "cost"]
+    reg = report["registration"]
+    assert reg["cases"] == 2 and set(reg["rows"]) == {
+        "nerfuser_ns",
+        *(f"{m}/{c}" for m in ("icp", "fgr", "ransac") for c in ("NeRF clouds", "RGB-D (GT depth)")),
+    }
+    for row in reg["rows"].values():
+        assert row["n"] == 2 and 0.0 <= row["success_rate"] <= 1.0
+    (blend,) = report["blending"]
+    for q in blend["quality"]["ground-truth"].values():
+        assert 5.0 < q["psnr"] < 60.0 and 0.0 < q["ssim"] <= 1.0
+    (gamma,) = report["gamma"]
+    assert [float(g) for g in gamma["psnr"]] == [0.1, 5.0, 100.0]
+    png = (out / gamma["plot"]).read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    assert len(report["pose_ablation"]["rows"]) == 4
+    (cost,) = report["cost"]["render"]
+    assert cost["ratio"] > 0 and cost["num_rays"] == 1024
+    md = (out / "report.md").read_text()
+    for heading in ("## 1. Registration", "## 2. Blending", "## 3. Gamma", "## 4. Re-render pose", "## 5. Cost"):
+        assert heading in md
+    assert report["machine"]["cpus"] and report["command"].endswith("--quick --output-dir " + str(out))
+
+    # a re-run with other gammas: every cached result reused but the gamma sweep's
+    again = subprocess.run([*cmd, "--gammas", "1", "10"], capture_output=True, text=True, cwd=ROOT, env=env)
+    assert again.returncode == 0, again.stderr[-3000:]
+    rerun = json.loads((out / "report.json").read_text())
+    assert rerun["cache"] == {"hits": sum(report["cache"].values()) - 1, "misses": 1}
+    assert [float(g) for g in rerun["gamma"][0]["psnr"]] == [1.0, 10.0]
+    assert rerun["registration"]["rows"] == report["registration"]["rows"]
