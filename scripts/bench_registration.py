@@ -10,7 +10,7 @@ Example (the scenes and runs built first with scripts/build_demo.py):
     python scripts/bench_registration.py \\
         --scenes demo=demo/scene:demo/runs \\
                  oc1=outputs/bench/scenes/object-centric-1:outputs/bench/runs/object-centric-1 \\
-        --pose-counts 24 16 --output outputs/bench/registration.json
+        --pose-counts 32 --seeds 0 1 --output outputs/bench/registration.json
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ from pathlib import Path
 
 import tyro
 
+from nerfuser_ns.evaluation import EvaluationError, SceneRuns
+
 
 @dataclass
 class BenchRegistrationConfig:
@@ -33,13 +35,15 @@ class BenchRegistrationConfig:
 
     scenes: list[str] = field(default_factory=lambda: ["demo=demo/scene:demo/runs"])
     """Scenes as NAME=SCENE_DIR:RUNS_DIR (runs at RUNS_DIR/<capture>/nerfacto-cpu/demo/config.yml)."""
-    pose_counts: list[int] = field(default_factory=lambda: [24])
-    """Training poses per NeRF to render, one case per value and scene."""
+    pose_counts: list[int] = field(default_factory=lambda: [32])
+    """Training poses per NeRF to render, one case per value, seed and scene."""
+    seeds: list[int] = field(default_factory=lambda: [0])
+    """Pose draws (0: evenly spaced training poses; others: random subsets)."""
     source: str = "training"
     """Pose source passed to the registration (hemisphere, training or both)."""
-    width: int = 320
-    """Render width."""
-    height: int = 240
+    width: int = 192
+    """Render width (the generated scenes' training images are 192x144)."""
+    height: int = 144
     """Render height."""
     fov_deg: float = 65.0
     """Render horizontal field of view."""
@@ -49,16 +53,13 @@ class BenchRegistrationConfig:
     """Skip cases already in the output file."""
 
 
-def _cases(cfg: BenchRegistrationConfig) -> list[tuple[str, Path, Path, int]]:
-    scenes = []
-    for spec in cfg.scenes:
-        name, _, dirs = spec.partition("=")
-        scene_dir, _, runs_dir = dirs.partition(":")
-        if not name or not scene_dir or not runs_dir:
-            raise SystemExit(f"--scenes: expected NAME=SCENE_DIR:RUNS_DIR, got {spec!r}")
-        scenes.append((name, Path(scene_dir), Path(runs_dir)))
+def _cases(cfg: BenchRegistrationConfig) -> list[tuple[SceneRuns, int, int]]:
+    try:
+        scenes = [SceneRuns.parse(spec) for spec in cfg.scenes]
+    except EvaluationError as e:
+        raise SystemExit(f"bench_registration: {e}") from None
     # every scene once before any scene twice: a run stopped early still covers all scenes
-    return [(name, scene, runs_dir, count) for count in cfg.pose_counts for name, scene, runs_dir in scenes]
+    return [(scene, count, seed) for seed in cfg.seeds for count in cfg.pose_counts for scene in scenes]
 
 
 def _summary(results: list[dict]) -> dict:
@@ -122,10 +123,9 @@ def _write(cfg: BenchRegistrationConfig, results: list[dict]) -> None:
 
 
 def main(cfg: BenchRegistrationConfig) -> None:
-    import numpy as np
     from rich.console import Console
 
-    from nerfuser_ns import registration, runs, sim3
+    from nerfuser_ns import registration, runs
     from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig, RegistrationError
 
     console = Console()
@@ -133,29 +133,23 @@ def main(cfg: BenchRegistrationConfig) -> None:
     if cfg.resume and cfg.output.is_file():
         done = {r["case"]: r for r in json.loads(cfg.output.read_text())["cases"]}
     results = list(done.values())
-    for name, scene_dir, runs_dir, count in _cases(cfg):
-        case = f"{name}/{cfg.source}-{count}"
+    for scene, count, seed in _cases(cfg):
+        case = f"{scene.name}/{cfg.source}-{count}-seed{seed}"
         if case in done:
             continue
-        gt = json.loads((scene_dir / "ground_truth.json").read_text())
-        captures = [c["name"] for c in gt["captures"]]
-        configs = [runs_dir / c / "nerfacto-cpu" / "demo" / "config.yml" for c in captures]
-        gt_nerf_to_world = [
-            np.asarray(c["capture_to_world"]) @ sim3.invert_sim3(runs.read_dataparser_transform(p))
-            for c, p in zip(gt["captures"], configs, strict=True)
-        ]
+        captures, configs, gt_nerf_to_world = scene.captures, scene.configs, scene.nerf_to_world()
         reg_cfg = RegistrationConfig(
             sampling=PoseSamplingConfig(
-                source=cfg.source, max_training_poses=count, num_poses=count, width=cfg.width, height=cfg.height,
-                fov_deg=cfg.fov_deg,
+                source=cfg.source, max_training_poses=count, num_poses=count, seed=seed, width=cfg.width,
+                height=cfg.height, fov_deg=cfg.fov_deg,
             )
         )  # fmt: skip
-        out = cfg.output.parent / "registration_cases" / f"{name}-{cfg.source}-{count}.json"
+        out = cfg.output.parent / "registration_cases" / f"{scene.name}-{cfg.source}-{count}-seed{seed}.json"
         console.rule(case)
         t = time.perf_counter()
         try:
             record = registration.register_runs(
-                configs, out, reg_cfg, work_dir=cfg.output.parent / "registration_work" / name,
+                configs, out, reg_cfg, work_dir=cfg.output.parent / "registration_work" / scene.name,
                 names=captures, gt_nerf_to_world=gt_nerf_to_world,
             )  # fmt: skip
         except (RegistrationError, runs.RunLoadError) as e:
