@@ -1,4 +1,4 @@
-"""Point-cloud registration baselines for NeRF registration (NeRFuser, ICCV 2023, Sec. 4.3 and Table 1).
+"""Point-cloud registration baselines for NeRF registration (NeRFuser, ICCV 2023, "NeRF Registration", Table 1).
 
 The paper compares its registration from re-rendering with three Open3D point-cloud registration (PCR) methods, run
 on point clouds extracted from the NeRFs and on point clouds fused from ground-truth posed RGB-D images:
@@ -22,8 +22,9 @@ input (e.g. dataset depth PNGs) is accepted with ``depth_kind="z"``.
 
 Determinism: RANSAC and FGR draw their samples from Open3D's global random generator, which
 :meth:`PCRBaseline.register` seeds with ``PCRConfig.seed`` (``o3d.utility.random.seed``) before every call. Open3D
-parallelises RANSAC with OpenMP; the draws are serialised, so repeated calls in the same thread configuration give
-identical results (tested with one and two threads).
+parallelises RANSAC with OpenMP; the draws are serialised, so repeated calls on the same clouds give identical
+results (checked with OMP_NUM_THREADS=1 and 2, which also agree with each other). The methods are discontinuous in
+their input, though: a relative change of 1e-15 in the scale can move FGR's answer by ~0.1 deg on the demo clouds.
 
 Conventions as in :mod:`nerfuser_ns.sim3`: ``T_AB`` maps points of A into B; poses are camera-to-world with OpenGL
 camera axes. Bad input raises :class:`BaselineError` with a one-line message.

@@ -14,6 +14,7 @@ import torch
 from nerfuser_ns import baselines as bl
 from nerfuser_ns import runs, scenes, sim3
 from nerfuser_ns.renderers import RenderBatch, SceneFrameRenderer
+from nerfuser_ns.sampling import sample_hemisphere_poses
 
 INTR = scenes.Intrinsics.from_fov(128, 96, 65.0)
 # A large similarity (rotation 119 deg, scale 1.7) and a small one (3 deg, 3.7 cm, scale 1.1); frame src -> frame tgt.
@@ -301,3 +302,35 @@ def test_bad_depth_arrays():
     with pytest.raises(bl.BaselineError) as excinfo:
         bl.extract_point_cloud(BlankRenderer(), np.zeros((0, 4, 4)), INTR)
     assert_one_line(excinfo, "blank: need a non-empty stack of finite poses")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# A real (tiny) nerfacto run
+
+
+def test_nerfacto_depth_renders_become_a_cloud_in_the_nerf_frame(tmp_path):
+    """NerfstudioRenderer's depth is nerfacto's ``depth`` output (ray distance); the cloud is its back-projection."""
+    from nerfuser_ns.renderers import NerfstudioRenderer
+    from nerfuser_ns.training import train
+
+    tiny = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
+    scenes.write_scene(tiny, tmp_path / "scene", supersample=1)
+    result = train(data=tmp_path / "scene" / "capture_a", output_dir=tmp_path / "outputs", experiment_name="tiny",
+                   max_num_iterations=6, seed=0, tiny=True)  # fmt: skip
+    renderer = NerfstudioRenderer(result.config_path, name="tiny")
+    # Hemisphere poses: training_poses() would load the run with its dataset, a path that (unlike the model-only one)
+    # does not replay the step-dependent proposal anneal, which changes the depth of this 6-step run.
+    c2w = sample_hemisphere_poses(2, radius=1.0)
+    intr = scenes.Intrinsics.from_fov(32, 24, 65.0)
+    batch = bl.render_rgbd(renderer, c2w, intr)
+    assert batch.depth.shape == (2, 24, 32) and np.isfinite(batch.depth).all() and (batch.depth > 0).all()
+    cams = runs.make_cameras(c2w[:, :3], intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
+    model = runs.load_run(result.config_path).model
+    expected = runs.render_views(model, cams, outputs=("depth",), progress=False)["depth"][..., 0].numpy()
+    np.testing.assert_allclose(batch.depth, expected, rtol=1e-5)
+    cfg = bl.PointCloudConfig(min_accumulation=0.0, voxel_size=1e-6, remove_outliers=False, min_points=10)
+    cloud = bl.extract_point_cloud(renderer, c2w, intr, cfg)
+    points, _ = bl.backproject(batch.depth, c2w, intr)
+    assert len(cloud.points) == points[..., 0].size
+    np.testing.assert_allclose(np.sort(bl.cloud_points(cloud), axis=0), np.sort(points.reshape(-1, 3), axis=0),
+                               atol=1e-5)  # fmt: skip
