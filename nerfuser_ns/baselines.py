@@ -102,6 +102,24 @@ class PointCloudConfig:
     min_points: int = 100
     """Fewer valid pixels than this is an error (nothing to register)."""
 
+    def validate(self) -> None:
+        """One-line :class:`BaselineError` for settings that cannot work."""
+        positive_or_none = {"max_depth": self.max_depth, "crop_half_size": self.crop_half_size,
+                            "voxel_size": self.voxel_size}  # fmt: skip
+        for name, value in positive_or_none.items():
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise BaselineError(f"{name} must be positive (or None), got {value}")
+        checks = [
+            (0 <= self.min_accumulation <= 1, f"min_accumulation must be in [0, 1], got {self.min_accumulation}"),
+            (0 < self.voxel_fraction < 1, f"voxel_fraction must be in (0, 1), got {self.voxel_fraction}"),
+            (0 <= self.extent_quantile < 0.5, f"extent_quantile must be in [0, 0.5), got {self.extent_quantile}"),
+            (self.normal_radius_factor > 0 and self.outlier_std_ratio > 0, "radius factor and std ratio must be > 0"),
+            (min(self.normal_max_nn, self.outlier_neighbors, self.min_points) >= 1, "counts must be >= 1"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise BaselineError(message)
+
 
 @dataclass
 class PCRConfig(InstantiateConfig):
@@ -282,12 +300,14 @@ def point_cloud_from_rgbd(
 ) -> o3d.geometry.PointCloud:
     """Fuse RGB-D views into one coloured, voxel-downsampled point cloud with normals, in the frame of ``c2w``.
 
-    Pixels are kept where the depth is finite, positive (and below ``config.max_depth``) and the accumulation is at
-    least ``config.min_accumulation``. Normals are fitted to the downsampled cloud and oriented towards the cameras
-    that saw the points (each point starts with the direction back to its camera; voxels average them).
+    Pixels are kept where the depth is finite, positive (at most ``config.max_depth``, the point inside
+    ``config.crop_half_size``) and the accumulation is at least ``config.min_accumulation``. Normals are fitted to
+    the downsampled cloud and oriented towards the cameras that saw the points (each point starts with the direction
+    back to its camera; voxels average them).
     """
     o3d = _o3d()
     config = config or PointCloudConfig()
+    config.validate()
     rgb = np.asarray(rgb, dtype=np.float64)
     depth = np.asarray(depth, dtype=np.float64)
     if rgb.shape[:-1] != depth.shape or rgb.shape[-1] != 3:

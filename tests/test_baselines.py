@@ -302,6 +302,13 @@ def test_bad_depth_arrays():
     with pytest.raises(bl.BaselineError) as excinfo:
         bl.extract_point_cloud(BlankRenderer(), np.zeros((0, 4, 4)), INTR)
     assert_one_line(excinfo, "blank: need a non-empty stack of finite poses")
+    ok = (np.zeros((1, INTR.height, INTR.width, 3)), np.ones((1, INTR.height, INTR.width)), c2w, INTR)
+    for kwargs, fragment in [({"voxel_size": -0.1}, "voxel_size must be positive (or None), got -0.1"),
+                             ({"crop_half_size": 0.0}, "crop_half_size must be positive"),
+                             ({"min_accumulation": 1.5}, "min_accumulation must be in [0, 1]")]:  # fmt: skip
+        with pytest.raises(bl.BaselineError) as excinfo:
+            bl.point_cloud_from_rgbd(*ok, config=bl.PointCloudConfig(**kwargs))
+        assert_one_line(excinfo, fragment)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
