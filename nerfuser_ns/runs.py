@@ -226,6 +226,7 @@ def load_run(
         pipeline.eval()
         pipeline.load_pipeline(state["pipeline"], state["step"])
         model = pipeline.model
+        _replay_step_state(model, int(state["step"]))  # as below: both paths must render alike
     else:
         model_state = _model_state(state, config_path)
         scene_box, num_train_data = _infer_model_kwargs(config, model_state)

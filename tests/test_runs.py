@@ -88,6 +88,13 @@ def test_load_with_data_gives_training_cameras(trained, tiny_scene):
     loaded = runs.load_run(trained.config_path, with_data=True, data_override=tiny_scene / "capture_a")
     cams = loaded.pipeline.datamanager.train_dataset.cameras
     assert len(cams) >= 10
+    # both load paths replay the step-driven state (nerfacto's proposal anneal), so they render alike
+    alone = runs.load_run(trained.config_path)
+    view = cams[0:1]
+    a = runs.render_views(loaded.model, view, outputs=("rgb", "depth"), progress=False)
+    b = runs.render_views(alone.model, view, outputs=("rgb", "depth"), progress=False)
+    torch.testing.assert_close(a["rgb"], b["rgb"], atol=1e-5, rtol=0)
+    torch.testing.assert_close(a["depth"], b["depth"], atol=1e-4, rtol=1e-4)
 
 
 def test_unregistered_method_name_still_loads(trained, tmp_path):
