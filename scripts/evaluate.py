@@ -105,11 +105,12 @@ class EvaluateConfig:
             "scenes": ["demo=object-centric:0"],
             "pose_seeds": [0, 1],
             "registration_poses": 16,
+            "render_size": (128, 96),
             "cloud_views": 6,
             "test_views": 2,
             "gammas": [0.1, 5.0, 100.0],
             "gamma_views": 2,
-            "ablation_counts": [8, 16],
+            "ablation_counts": [8],
             "ablation_hemisphere_poses": 8,
             "timing_rays": 1024,
         }

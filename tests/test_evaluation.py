@@ -192,7 +192,7 @@ def test_evaluate_quick_mode_writes_every_section_and_caches(tmp_path):
     assert [float(g) for g in gamma["psnr"]] == [0.1, 5.0, 100.0]
     png = (out / gamma["plot"]).read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
-    assert len(report["pose_ablation"]["rows"]) == 4
+    assert [(r["count"], r["source"]) for r in report["pose_ablation"]["rows"]] == [(8, "training"), (8, "both")]
     (cost,) = report["cost"]["render"]
     assert cost["ratio"] > 0 and cost["num_rays"] == 1024
     md = (out / "report.md").read_text()
