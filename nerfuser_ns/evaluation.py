@@ -79,6 +79,11 @@ class SceneRuns:
             raise EvaluationError(f"scene {spec!r}: expected NAME=SCENE_DIR:RUNS_DIR")
         return cls.from_dirs(name, scene_dir, runs_dir)
 
+    def capture_dirs(self) -> list[Path]:
+        """Each run's dataset (the capture folder): where its training poses are read when the path recorded in the
+        run's config.yml (relative to where it was trained) does not resolve."""
+        return [self.scene_dir / c for c in self.captures]
+
     def nerf_to_world(self) -> list[Float[np.ndarray, "4 4"]]:
         """Ground truth: each run's NeRF frame -> the scene's world frame (capture_to_world after the inverse of the
         run's dataparser transform)."""

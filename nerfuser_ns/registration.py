@@ -890,10 +890,12 @@ def register_runs(
     device: str = "cpu",
     gt_nerf_to_world: Sequence[np.ndarray] | None = None,
     console: Console = CONSOLE,
+    data_overrides: Sequence[Path | None] | None = None,
 ) -> dict:
     """Register trained nerfstudio runs from their config.yml files and write the registration file at ``output``.
 
-    ``work_dir`` defaults to ``<output>_work`` (renders and SfM files, reused by later calls). Raises
+    ``work_dir`` defaults to ``<output>_work`` (renders and SfM files, reused by later calls). ``data_overrides[i]``
+    is run i's dataset folder where its config's path no longer holds it (training poses are read from it). Raises
     :class:`RegistrationError` or ``runs.RunLoadError`` (one line) on bad input; nothing is written then.
     """
     from nerfuser_ns.renderers import NerfstudioRenderer
@@ -901,10 +903,15 @@ def register_runs(
     output = Path(output)
     if names is not None and len(names) != len(config_paths):
         raise RegistrationError(f"{len(names)} names for {len(config_paths)} runs")
+    if data_overrides is not None and len(data_overrides) != len(config_paths):
+        raise RegistrationError(f"{len(data_overrides)} dataset folders for {len(config_paths)} runs")
     renderers = [
-        NerfstudioRenderer(c, device=device, name=None if names is None else names[i])
+        NerfstudioRenderer(
+            c, device=device, name=None if names is None else names[i],
+            data_override=None if data_overrides is None else data_overrides[i],
+        )
         for i, c in enumerate(config_paths)
-    ]
+    ]  # fmt: skip
     work_dir = Path(work_dir) if work_dir is not None else output.with_name(output.stem + "_work")
     record = register(renderers, config, work_dir, gt_nerf_to_world=gt_nerf_to_world, console=console)
     write_registration(record, output)

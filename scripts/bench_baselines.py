@@ -349,7 +349,10 @@ def main(cfg: BenchBaselinesConfig) -> None:
             continue
         console.rule(f"{scene.name}: {len(todo)} cases")
         layout = scenes.layout_from_ground_truth(scene.scene_dir)
-        nerfs = [NerfstudioRenderer(p, name=n) for n, p in zip(names, scene.configs, strict=True)]
+        nerfs = [
+            NerfstudioRenderer(p, name=n, data_override=d)
+            for n, p, d in zip(names, scene.configs, scene.capture_dirs(), strict=True)
+        ]
         clouds = _SceneClouds(cfg, scene, layout, nerfs, sampling, work, report, console)
 
         for kind, j, i, (variant, method, refine) in todo:

@@ -150,7 +150,7 @@ def main(cfg: BenchRegistrationConfig) -> None:
         try:
             record = registration.register_runs(
                 configs, out, reg_cfg, work_dir=cfg.output.parent / "registration_work" / scene.name,
-                names=captures, gt_nerf_to_world=gt_nerf_to_world,
+                names=captures, gt_nerf_to_world=gt_nerf_to_world, data_overrides=scene.capture_dirs(),
             )  # fmt: skip
         except (RegistrationError, runs.RunLoadError) as e:
             results.append({"case": case, "status": "error", "error": str(e), "seconds": time.perf_counter() - t})

@@ -99,7 +99,10 @@ def main(cfg: CalibrateNccConfig) -> None:
     rows = []
     for spec in cfg.scenes:
         scene = SceneRuns.parse(spec)
-        renderers = [NerfstudioRenderer(p, name=c) for p, c in zip(scene.configs, scene.captures, strict=True)]
+        renderers = [
+            NerfstudioRenderer(p, name=c, data_override=d)
+            for p, c, d in zip(scene.configs, scene.captures, scene.capture_dirs(), strict=True)
+        ]
         views = [
             registration.render_views_cached(r, sampling, cfg.work_dir / scene.name / "renders", console)
             for r in renderers

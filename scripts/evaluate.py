@@ -208,7 +208,7 @@ def build_scenes(cfg: EvaluateConfig, console) -> list[Scene]:  # noqa: ANN001
 
 
 def registration_case(cfg: EvaluateConfig, scene: Scene, seed: int, count: int, source: str, cache: Cache) -> dict:
-    from nerfuser_ns import registration, runs
+    from nerfuser_ns import registration
     from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig, RegistrationError, SfMConfig
 
     w, h = cfg.render_size
@@ -236,8 +236,9 @@ def registration_case(cfg: EvaluateConfig, scene: Scene, seed: int, count: int, 
                 work_dir=work,
                 names=scene.runs.captures,
                 gt_nerf_to_world=scene.runs.nerf_to_world(),
+                data_overrides=scene.runs.capture_dirs(),
             )
-        except (RegistrationError, runs.RunLoadError) as e:
+        except RegistrationError as e:  # a run that cannot be loaded is a setup error: it propagates
             return {
                 "status": "error",
                 "error": str(e),
@@ -290,7 +291,8 @@ def baselines_case(cfg: EvaluateConfig, scene: Scene, seed: int, source: str, ca
         to_world = scene.runs.nerf_to_world()
         if source == "nerf":
             renderers = [
-                NerfstudioRenderer(p, name=c) for p, c in zip(scene.runs.configs, scene.runs.captures, strict=True)
+                NerfstudioRenderer(p, name=c, data_override=d)
+                for p, c, d in zip(scene.runs.configs, scene.runs.captures, scene.runs.capture_dirs(), strict=True)
             ]
         else:
             layout = layout_from_ground_truth(scene.runs.scene_dir)
@@ -299,7 +301,8 @@ def baselines_case(cfg: EvaluateConfig, scene: Scene, seed: int, source: str, ca
                 for T, c in zip(to_world, scene.runs.captures, strict=True)
             ]
         train_src = [
-            NerfstudioRenderer(p, name=c) for p, c in zip(scene.runs.configs, scene.runs.captures, strict=True)
+            NerfstudioRenderer(p, name=c, data_override=d)
+            for p, c, d in zip(scene.runs.configs, scene.runs.captures, scene.runs.capture_dirs(), strict=True)
         ]
         clouds = []
         for r, tr in zip(renderers, train_src, strict=True):
