@@ -219,8 +219,8 @@ def load_run(
         data = config.pipeline.datamanager.data or getattr(config.pipeline.datamanager.dataparser, "data", None)
         if data is not None and not Path(data).exists():
             raise RunLoadError(
-                f"{config_path}: its dataset {data} is missing; pass data_override=<dataset folder> or load "
-                "without data (the model alone needs no dataset)"
+                f"{config_path}: its dataset {data} is missing; pass the dataset folder (ns-nerfuser-register "
+                "--data, load_run(data_override=...)) or load without data (the model alone needs no dataset)"
             )
         pipeline = config.pipeline.setup(device=device, test_mode=test_mode)
         pipeline.eval()

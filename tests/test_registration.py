@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from nerfuser_ns import registration as reg
-from nerfuser_ns import scenes, sim3
+from nerfuser_ns import runs, scenes, sim3
 from nerfuser_ns.renderers import RenderBatch, Renderer, SceneFrameRenderer
 from nerfuser_ns.sampling import sample_hemisphere_poses
 from nerfuser_ns.scripts import register as cli
@@ -398,3 +399,22 @@ def test_run_without_checkpoints(tiny_runs, tmp_path, capsys):
     shutil.rmtree(no_ckpt / "nerfstudio_models")
     rc, out, err = run_cli(tmp_path, None, capsys, configs=[first, no_ckpt / "config.yml"])
     assert_one_line_error(rc, out, err, str(no_ckpt / "config.yml"), "has no checkpoint")
+
+
+def test_moved_dataset_needs_and_takes_data(tiny_runs, tmp_path, capsys):
+    """Training poses come from the run's dataset: a moved dataset is a one-line error naming --data, and --data
+    points the run at it."""
+    root, first, _ = tiny_runs
+    moved = tmp_path / "o" / "tiny" / "nerfacto-cpu" / "run"
+    shutil.copytree(first.parent, moved)
+    config = runs.read_config(moved / "config.yml")
+    config.pipeline.datamanager.data = tmp_path / "gone"
+    (moved / "config.yml").write_text(yaml.dump(config))
+    kw = dict(configs=[first, moved / "config.yml"], sampling=reg.PoseSamplingConfig(
+        source="training", max_training_poses=4, width=64, height=48))  # fmt: skip
+    rc, out, err = run_cli(tmp_path, None, capsys, **kw)
+    assert_one_line_error(rc, out, err, str(moved / "config.yml"), "is missing", "--data")
+    rc, out, err = run_cli(tmp_path, None, capsys, **kw, data=[root / "scene" / "capture_a"] * 2)
+    assert "is missing" not in err  # now the poses load; tiny runs may still fail to register (another error)
+    rc, out, err = run_cli(tmp_path, None, capsys, **kw, data=[root / "scene" / "capture_a"])
+    assert_one_line_error(rc, out, err, "--data names 1 dataset folders for 2 runs")

@@ -46,6 +46,9 @@ class RegisterCommand(RegistrationConfig):
     """Registration file to write (JSON, written atomically)."""
     work_dir: Path | None = None
     """Folder for renders and SfM files, reused by later runs with the same inputs (default: <output>_work)."""
+    data: list[Path] = field(default_factory=list)
+    """Dataset folder of each run, in --configs order, for runs whose config.yml points at a dataset that has moved
+    (only --sampling.source training|both reads it: the training poses)."""
     device: str = "cpu"
     """Torch device the runs render on."""
     eval_num_rays_per_chunk: int | None = None
@@ -65,10 +68,15 @@ class RegisterCommand(RegistrationConfig):
         if renderers is None:
             if len(self.configs) < 2:
                 raise RegistrationError(f"pass at least 2 runs with --configs (got {len(self.configs)})")
+            if self.data and len(self.data) != len(self.configs):
+                raise RegistrationError(
+                    f"--data names {len(self.data)} dataset folders for {len(self.configs)} runs; name one per run"
+                )
             renderers = [
-                NerfstudioRenderer(c, device=self.device, eval_num_rays_per_chunk=self.eval_num_rays_per_chunk)
-                for c in self.configs
-            ]
+                NerfstudioRenderer(c, device=self.device, eval_num_rays_per_chunk=self.eval_num_rays_per_chunk,
+                                   data_override=self.data[i] if self.data else None)
+                for i, c in enumerate(self.configs)
+            ]  # fmt: skip
         gt = self._ground_truth(renderers)
         work_dir = self.work_dir or self.output.with_name(self.output.stem + "_work")
         config = RegistrationConfig(**{f: getattr(self, f) for f in RegistrationConfig.__dataclass_fields__})
