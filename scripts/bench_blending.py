@@ -43,6 +43,8 @@ class BenchBlendingConfig:
     with the ground-truth transforms only."""
     max_test_views: int = 12
     """Test views per scene."""
+    quality: bool = True
+    """Score the blend methods (--no-quality: only the render cost)."""
     gamma: float | None = None
     """Blending rate (None: the paper's value for the scene's layout)."""
     tau: float | None = None
@@ -72,9 +74,10 @@ def _markdown(report: dict) -> str:
         head = f"{s['name']} ({s['layout']}, {s['test_views']} test views, gamma {s['gamma']}, tau {s['tau']})"
         lines += [f"## {head}", ""]
         labels = list(s["quality"])
-        lines.append("| method | " + " | ".join(f"{lbl} T" for lbl in labels) + " |")
-        lines.append("| --- |" + " --- |" * len(labels))
-        for m in s["quality"][labels[0]]:
+        if labels:
+            lines.append("| method | " + " | ".join(f"{lbl} T" for lbl in labels) + " |")
+            lines.append("| --- |" + " --- |" * len(labels))
+        for m in s["quality"][labels[0]] if labels else ():
             cells = []
             for lbl in labels:
                 q = s["quality"][lbl][m]
@@ -143,7 +146,7 @@ def main(cfg: BenchBlendingConfig) -> None:
         if scene.name in registrations:
             transforms["estimated"] = evaluation.registered_transforms(registrations[scene.name], scene)
         quality = {}
-        for label, T in transforms.items():
+        for label, T in transforms.items() if cfg.quality else ():
             quality[label] = evaluation.blend_metrics(
                 models, T, cams, target, gamma=gamma, tau=tau, description=f"{scene.name}: {label} T"
             )
