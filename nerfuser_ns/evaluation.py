@@ -215,7 +215,7 @@ class RenderCost:
     ratio: float
     """``fused_s / sum(sub_s)`` (medians over interleaved repeats, so machine noise hits both alike)."""
     fused_peak_mib: float
-    """Peak resident memory added by one fused pass over the chunk (MiB, sampled)."""
+    """Peak resident memory added by one fused pass over the chunk (MiB, sampled in a pass after the timing)."""
     sub_peak_mib: list[float]
     """Peak resident memory added by each sub-model's own pass (MiB, sampled)."""
     method: str
@@ -238,7 +238,8 @@ def measure_render_cost(
 ) -> RenderCost:
     """Times one chunk of ``num_rays`` random test rays through the fused model (``method``, no extra outputs) and
     through each sub-model's own forward pass (collider, sampler, field, renderers) on the same rays mapped into its
-    frame. Repeats are interleaved; the first (warm-up, compilation) pass is not counted."""
+    frame. Repeats are interleaved; the first (warm-up, compilation) pass is not counted. Memory is measured in one
+    more pass per path, after the timing."""
     from nerfuser_ns.model import map_rays
 
     model = fused(models, transforms, blend_method=method, gamma=gamma, tau=tau, share_outputs=False)
@@ -248,28 +249,26 @@ def measure_render_cost(
     rays = bundle[pick]
     mapped = [map_rays(rays, model.common_to_nerf[i], m.num_train_data)[0] for i, (_, m) in enumerate(models)]
 
-    def timed(fn) -> tuple[float, float]:  # noqa: ANN001
-        with _PeakRSS() as mem:
-            t = time.perf_counter()
-            fn()
-            dt = time.perf_counter() - t
-        return dt, mem.added_mib
-
     passes = [lambda: model(rays)] + [lambda r=r, m=m: m(r) for r, (_, m) in zip(mapped, models, strict=True)]
     times: list[list[float]] = [[] for _ in passes]
-    peaks: list[list[float]] = [[] for _ in passes]
+    peaks: list[float] = []
     with torch.no_grad():
         for p in passes:
             p()  # warm-up
         for _ in range(repeats):
             for i, p in enumerate(passes):
-                dt, mib = timed(p)
-                times[i].append(dt)
-                peaks[i].append(mib)
+                t = time.perf_counter()
+                p()
+                times[i].append(time.perf_counter() - t)
+        # memory after the timing: the sampler thread and the allocator setting it needs would slow the passes
+        for p in passes:
+            with _PeakRSS() as mem:
+                p()
+            peaks.append(mem.added_mib)
     med = [statistics.median(t) for t in times]
     return RenderCost(
         num_rays=len(rays), fused_s=med[0], sub_s=med[1:], ratio=med[0] / sum(med[1:]),
-        fused_peak_mib=max(peaks[0]), sub_peak_mib=[max(p) for p in peaks[1:]], method=method, repeats=repeats,
+        fused_peak_mib=peaks[0], sub_peak_mib=peaks[1:], method=method, repeats=repeats,
     )  # fmt: skip
 
 
