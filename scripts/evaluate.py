@@ -300,10 +300,11 @@ def baselines_case(cfg: EvaluateConfig, scene: Scene, seed: int, source: str, ca
                 SceneFrameRenderer(layout.scene, T, c, training_c2w=None)
                 for T, c in zip(to_world, scene.runs.captures, strict=True)
             ]
-        train_src = [
+        # the poses are each run's training poses; a run's renderer already loaded serves both (one model load)
+        train_src = renderers if source == "nerf" else [
             NerfstudioRenderer(p, name=c, data_override=d)
             for p, c, d in zip(scene.runs.configs, scene.runs.captures, scene.runs.capture_dirs(), strict=True)
-        ]
+        ]  # fmt: skip
         clouds = []
         for r, tr in zip(renderers, train_src, strict=True):
             c2w, _ = sample_poses(tr, sampling)  # the NeRF's own training poses, in its frame
