@@ -275,7 +275,7 @@ def test_self_check_rejects_a_wrong_transform(oc_layout, oc_renderers, oc_record
     wrong[1] = sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 0.0, 25.0])), [0.1, 0.0, 0.0]) @ T[1]
     bad = reg.cross_render_check(oc_renderers, views, wrong, [(0, 1)], intr, config)[0]
     assert good.score > 0.9
-    assert bad.score < 0.5 < config.ncc_threshold
+    assert bad.score < config.ncc_threshold
 
 
 def test_register_fails_when_the_estimate_is_wrong(oc_renderers, oc_record, work, monkeypatch, tmp_path, capsys):
