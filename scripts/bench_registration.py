@@ -26,7 +26,7 @@ from pathlib import Path
 
 import tyro
 
-from nerfuser_ns.evaluation import EvaluationError, SceneRuns
+from nerfuser_ns.evaluation import EvaluationError, SceneRuns, write_atomic
 
 
 @dataclass
@@ -88,9 +88,7 @@ def _write(cfg: BenchRegistrationConfig, results: list[dict]) -> None:
         "cases": results,
     }
     cfg.output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cfg.output.with_suffix(".tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    os.replace(tmp, cfg.output)
+    write_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
     lines = [
         f"# Registration benchmark ({report['date']})",
         "",
@@ -117,9 +115,7 @@ def _write(cfg: BenchRegistrationConfig, results: list[dict]) -> None:
         f"t_err {s['median_t_err']:.5f}, s_err {s['median_s_err']:.5f}; success rate {s['success_rate']:.2f}.",
     ]
     md = cfg.output.with_suffix(".md")
-    tmp = md.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, md)
+    write_atomic(md, "\n".join(lines) + "\n")
 
 
 def main(cfg: BenchRegistrationConfig) -> None:
