@@ -242,7 +242,8 @@ class ViewSet:
     """Views that go into the SfM (enough accumulation)."""
     reused: bool = False
     """Whether the renders came from the cache."""
-    render_seconds: float = 0.0
+    render_seconds: float | None = 0.0
+    """Seconds the renders took when they were made (None for cache folders written before this was stored)."""
 
     @property
     def image_names(self) -> list[str]:
@@ -277,6 +278,7 @@ def render_views_cached(
                 renderer.name, folder, np.array([v["c2w"] for v in views], dtype=np.float64),
                 [v["source"] for v in views], np.array([v["mean_accumulation"] for v in views]),
                 np.array([v["kept"] for v in views], dtype=bool), reused=True,
+                render_seconds=meta.get("render_seconds"),
             )
         except (KeyError, ValueError, TypeError):
             pass  # a damaged cache entry is rendered again
@@ -316,6 +318,7 @@ def render_views_cached(
         kept = mean_acc >= cfg.min_view_accumulation
         meta = {
             "renderer": renderer.name,
+            "render_seconds": time.perf_counter() - start,
             "cache_key": renderer.cache_key(),
             "sampling": asdict(cfg),
             "intrinsics": asdict(intr),
@@ -333,7 +336,7 @@ def render_views_cached(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return ViewSet(renderer.name, folder, c2w, sources, mean_acc, kept, False, time.perf_counter() - start)
+    return ViewSet(renderer.name, folder, c2w, sources, mean_acc, kept, False, meta["render_seconds"])
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -732,6 +735,10 @@ def register(
     sfm = run_sfm(views, intr, config.sfm, work_dir, console)
     for step in ("features", "matching", "mapping"):
         timings[step] = 0.0 if sfm.reused else sfm.timings.get(step, 0.0)
+    # What each step costs without the work folder (reused renders and SfM report the time they took when made).
+    render_s = [vs.render_seconds for vs in views]
+    compute = {"render": None if None in render_s else float(sum(render_s))}
+    compute.update({step: sfm.timings.get(step) for step in ("features", "matching", "mapping")})
     if not sfm.model_counts:
         raise RegistrationError(
             f"SfM reconstructed nothing from the renders of {', '.join(names)} (too few matches); {SUGGESTION}"
@@ -862,6 +869,11 @@ def register(
         },
         "settings": asdict(config),
         "timings_s": {k_: round(v, 3) for k_, v in timings.items()},
+        "compute_timings_s": {
+            k_: None if v is None else round(v, 3)
+            for k_, v in {**compute, "solve": timings["solve"], "self_check": timings["self_check"]}.items()
+        },
+        "reused": {"renders": [vs.reused for vs in views], "sfm": sfm.reused},
         "ground_truth": None if gt is None else {
             "failure": any(g["failure"] for n, g in enumerate(gt) if n != ref),
             "rule": "NaN, r_err > 5 deg, t_err > 0.2 (reference units) or s_err = |log s| > 0.1",

@@ -159,8 +159,18 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         pairs.add_row(" / ".join(p["names"]), str(p["covisible_points"]), "-" if sc is None else _fmt(sc["ncc"], ".3f"),
                       "-" if sc is None else ("[green]passed[/]" if sc["passed"] else "[red]failed[/]"))
     console.print(pairs)
-    t = record["timings_s"]
-    console.print("time (s): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()))
+    t, made = record["timings_s"], record.get("compute_timings_s", {})
+    reused = record.get("reused", {})
+    parts = []
+    for k, v in t.items():
+        was_reused = any(reused.get("renders", [])) if k == "render" else reused.get("sfm", False) and k in (
+            "features", "matching", "mapping"
+        )
+        if was_reused and made.get(k) is not None:
+            parts.append(f"{k} {v:.1f} (reused; {made[k]:.1f} when made)")
+        else:
+            parts.append(f"{k} {v:.1f}")
+    console.print("time (s): " + ", ".join(parts))
     if has_gt and record["ground_truth"]["failure"]:
         console.print("[bold yellow]ground truth: the registration is a failure by the paper's rule[/]")
 
