@@ -115,6 +115,15 @@ class SfMConfig:
     """SIFT features per image."""
     min_model_size: int = 3
     """Smaller SfM models are discarded (pycolmap's default, 10, would hide small separate models)."""
+    min_num_inliers: int = 10
+    """Geometric verification: inlier matches an image pair needs (COLMAP: 15). Renders of different NeRFs share
+    fewer features than photos of one capture; the cross-render self-check guards against wrong links."""
+    min_num_matches: int = 10
+    """Mapping: verified matches a pair needs to be used (COLMAP: 15)."""
+    abs_pose_min_num_inliers: int = 15
+    """Mapping: 2D-3D inliers an image needs to register (COLMAP: 30)."""
+    abs_pose_min_inlier_ratio: float = 0.15
+    """Mapping: inlier ratio an image needs to register (COLMAP: 0.25)."""
     num_threads: int = -1
     """Threads for extraction, matching and mapping (-1: all cores)."""
     seed: int = 0
@@ -434,6 +443,7 @@ def run_sfm(
     matching_opts.use_gpu = False
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = cfg.seed
+    verification.min_num_inliers = cfg.min_num_inliers
     exhaustive = len(used) <= cfg.exhaustive_max_images
     with console.status(f"SfM: matching {len(used)} renders ({'exhaustive' if exhaustive else 'pose-guided pairs'})"):
         t0 = time.perf_counter()
@@ -459,6 +469,9 @@ def run_sfm(
         options.mapper.abs_pose_refine_focal_length = False
         options.mapper.abs_pose_refine_extra_params = False
         options.min_model_size = cfg.min_model_size
+        options.min_num_matches = cfg.min_num_matches
+        options.mapper.abs_pose_min_num_inliers = cfg.abs_pose_min_num_inliers
+        options.mapper.abs_pose_min_inlier_ratio = cfg.abs_pose_min_inlier_ratio
         options.num_threads = cfg.num_threads
         options.random_seed = cfg.seed
         models = pycolmap.incremental_mapping(db, renders_root, folder / "sparse", options)
