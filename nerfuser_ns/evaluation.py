@@ -24,6 +24,7 @@ from nerfstudio.models.base_model import Model
 from torch import Tensor
 
 from nerfuser_ns import metrics, runs, sim3
+from nerfuser_ns.files import write_text_atomic
 
 BLEND_METHODS = ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
 """Every blend method, in the paper's table order."""
@@ -279,14 +280,7 @@ def geometric_gammas(low: float = 1e-2, high: float = 1e3, num: int = 11) -> lis
 
 def write_atomic(path: Path | str, text: str) -> Path:
     """Writes ``text`` to ``path`` through a temporary file and a rename (no half-written reports)."""
-    import os
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
+    return write_text_atomic(path, text)
 
 
 __all__ = [

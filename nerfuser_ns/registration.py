@@ -36,6 +36,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from nerfuser_ns import sim3
+from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.renderers import Renderer
 from nerfuser_ns.sampling import intrinsics_from_fov, sample_hemisphere_poses
 from nerfuser_ns.scenes import Intrinsics
@@ -169,18 +170,6 @@ def _hash(obj) -> str:
 
 def _to_uint8(rgb: np.ndarray) -> np.ndarray:
     return np.round(np.nan_to_num(rgb, nan=0.0).clip(0, 1) * 255.0).astype(np.uint8)
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _mat(T: np.ndarray) -> list:
@@ -510,7 +499,7 @@ def run_sfm(
         reproj = float(rec.compute_mean_reprojection_error())
     result = SfMResult(c2w, model_counts, covisible, num_points, reproj, len(used),
                        "exhaustive" if exhaustive else "pose-guided pairs", timings)
-    _atomic_write_text(result_path, json.dumps(asdict(result)) + "\n")
+    write_text_atomic(result_path, json.dumps(asdict(result)) + "\n")
     return result
 
 
@@ -947,7 +936,7 @@ def register_runs(
 def write_registration(record: dict, path: Path | str) -> Path:
     """Write the registration record as JSON, atomically (temp file + rename)."""
     path = Path(path)
-    _atomic_write_text(path, json.dumps(record, indent=2) + "\n")
+    write_text_atomic(path, json.dumps(record, indent=2) + "\n")
     return path
 
 

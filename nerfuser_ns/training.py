@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +18,7 @@ from nerfstudio.models.base_model import Model
 from nerfstudio.scripts.train import _set_random_seed
 
 from nerfuser_ns import runtime
+from nerfuser_ns.files import atomic_path, write_text_atomic
 from nerfuser_ns.method_configs.nerfacto_cpu import nerfacto_cpu_config
 
 
@@ -182,10 +182,7 @@ def train_captures(
         log(f"{name}: {report['runs'][name]}")
         for ckpt in (result.config_path.parent / "nerfstudio_models").glob("step-*.ckpt"):
             slim_checkpoint(ckpt)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_suffix(".tmp")
-        tmp.write_text(json.dumps(report, indent=2) + "\n")
-        os.replace(tmp, out)
+        write_text_atomic(out, json.dumps(report, indent=2) + "\n")
     return report
 
 
@@ -193,6 +190,5 @@ def slim_checkpoint(path: Path) -> None:
     """Keeps only what loading and rendering need (no optimizer state); written atomically."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     slim = {"step": state["step"], "pipeline": state["pipeline"]}
-    tmp = path.with_suffix(".tmp")
-    torch.save(slim, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(slim, tmp)

@@ -43,6 +43,7 @@ from typing import Literal
 import tyro
 
 from nerfuser_ns.baselines import PCRConfig, PointCloudConfig
+from nerfuser_ns.files import atomic_path
 
 VARIANTS = ("icp", "fgr", "ransac", "fgr+icp", "ransac+icp")
 """Baseline variants: a method, optionally followed by ICP refinement (``+icp``)."""
@@ -252,10 +253,8 @@ class _SceneClouds:
         with self.console.status(f"extracting {label} ({len(poses)} views)"):
             cloud = baselines.extract_point_cloud(renderer, poses, self.sampling.intrinsics(), ccfg)
         seconds = time.perf_counter() - t
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.stem + ".tmp.ply")
-        o3d.io.write_point_cloud(str(tmp), cloud)
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            o3d.io.write_point_cloud(str(tmp), cloud)
         cloud = o3d.io.read_point_cloud(str(path))  # as a resumed run sees it (colours stored as 8 bits)
         self.report["clouds"][label] = {
             "points": len(cloud.points), "seconds": round(seconds, 1), "views": len(poses), "file": str(path),

@@ -20,6 +20,8 @@ from typing import Literal
 
 import tyro
 
+from nerfuser_ns.files import write_text_atomic
+
 
 @dataclass
 class BenchFastPathConfig:
@@ -134,10 +136,7 @@ def main(cfg: BenchFastPathConfig) -> None:
         f"render speedup x{report['render_speedup']}, train-step speedup x{report['train_speedup']}, "
         f"max |rgb difference| {max_diff:.2e}"
     )
-    cfg.output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cfg.output.with_suffix(".tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    os.replace(tmp, cfg.output)
+    write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
     runtime.set_fast_path(None)
 
 

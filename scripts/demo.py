@@ -21,7 +21,6 @@ Example:
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import time
@@ -29,6 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import tyro
+
+from nerfuser_ns.files import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -211,9 +212,7 @@ def main(cfg: DemoConfig) -> None:
 
     summary["seconds"] = round(time.perf_counter() - start, 1)
     out_path = cfg.output_dir / "summary.json"
-    tmp = out_path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    os.replace(tmp, out_path)
+    write_text_atomic(out_path, json.dumps(summary, indent=2) + "\n")
     console.print(table)
     if "registration" in summary:
         for name, err in summary["registration"]["errors"].items():

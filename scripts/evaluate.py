@@ -36,6 +36,8 @@ from typing import Any
 
 import tyro
 
+from nerfuser_ns.files import atomic_path
+
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2)}
 """(gamma, tau) the paper uses per scene type."""
@@ -554,10 +556,9 @@ def gamma_plot(path: Path, scene: str, sweep: dict) -> None:
     ax.set_title(f"Blending rate ablation: {scene}")
     ax.legend()
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=120)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
