@@ -519,15 +519,12 @@ SPLIT_KEYS = ("render", "features", "matching", "mapping", "solve", "self_check"
 
 def _split(case: dict) -> dict | None:
     """A registration case's time per step as computed (renders and SfM made, not read from the work folder), or
-    None when that is not known (records of a run that reused its work folder before the compute times were kept)."""
+    None when that is not known (renders made before their render time was stored with them)."""
     if case["status"] != "ok":
         return None
     made = case.get("compute_timings_s") or {}
     if all(made.get(k) is not None for k in SPLIT_KEYS):
         return {k: float(made[k]) for k in SPLIT_KEYS}
-    t = case["timings_s"]
-    if t.get("render", 0) > 0 and t.get("features", 0) > 0:  # nothing was reused
-        return {k: float(t[k]) for k in SPLIT_KEYS}
     return None
 
 
