@@ -24,7 +24,6 @@ from nerfstudio.models.base_model import Model
 from torch import Tensor
 
 from nerfuser_ns import metrics, runs, sim3
-from nerfuser_ns.files import write_text_atomic
 
 BLEND_METHODS = ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
 """Every blend method, in the paper's table order."""
@@ -278,11 +277,6 @@ def geometric_gammas(low: float = 1e-2, high: float = 1e3, num: int = 11) -> lis
     return [float(g) for g in np.geomspace(low, high, num)]
 
 
-def write_atomic(path: Path | str, text: str) -> Path:
-    """Writes ``text`` to ``path`` through a temporary file and a rename (no half-written reports)."""
-    return write_text_atomic(path, text)
-
-
 __all__ = [
     "BLEND_METHODS",
     "EvaluationError",
@@ -294,7 +288,6 @@ __all__ = [
     "geometric_gammas",
     "measure_render_cost",
     "registered_transforms",
-    "write_atomic",
 ]
 
 

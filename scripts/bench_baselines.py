@@ -43,7 +43,7 @@ from typing import Literal
 import tyro
 
 from nerfuser_ns.baselines import PCRConfig, PointCloudConfig
-from nerfuser_ns.files import atomic_path
+from nerfuser_ns.files import atomic_path, write_text_atomic
 
 VARIANTS = ("icp", "fgr", "ransac", "fgr+icp", "ransac+icp")
 """Baseline variants: a method, optionally followed by ICP refinement (``+icp``)."""
@@ -185,11 +185,10 @@ def _markdown(report: dict) -> str:
 
 
 def _write(cfg: BenchBaselinesConfig, report: dict) -> None:
-    from nerfuser_ns.evaluation import write_atomic
 
     report["summary"] = _summary_rows(report["cases"])
-    write_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
-    write_atomic(cfg.output.with_suffix(".md"), _markdown(report))
+    write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
+    write_text_atomic(cfg.output.with_suffix(".md"), _markdown(report))
 
 
 # ---------------------------------------------------------------------------------------------------------------------

@@ -112,6 +112,7 @@ def main(cfg: BenchBlendingConfig) -> None:
 
     from nerfuser_ns import evaluation, runs, runtime
     from nerfuser_ns.evaluation import SceneRuns
+    from nerfuser_ns.files import write_text_atomic
 
     console = Console()
     registrations = {}
@@ -161,8 +162,8 @@ def main(cfg: BenchBlendingConfig) -> None:
             "test_views": len(cams), "registration": str(registrations.get(scene.name)), "quality": quality,
             "cost": cost.as_dict(),
         })  # fmt: skip
-        evaluation.write_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
-        evaluation.write_atomic(cfg.output.with_suffix(".md"), _markdown(report))
+        write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
+        write_text_atomic(cfg.output.with_suffix(".md"), _markdown(report))
     console.print(f"wrote {cfg.output} and {cfg.output.with_suffix('.md')}")
 
 

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import tyro
 
-from nerfuser_ns.evaluation import EvaluationError, SceneRuns, write_atomic
+from nerfuser_ns.evaluation import EvaluationError, SceneRuns
+from nerfuser_ns.files import write_text_atomic
 
 
 @dataclass
@@ -87,8 +88,7 @@ def _write(cfg: BenchRegistrationConfig, results: list[dict]) -> None:
         "summary": _summary(results),
         "cases": results,
     }
-    cfg.output.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
+    write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
     lines = [
         f"# Registration benchmark ({report['date']})",
         "",
@@ -115,7 +115,7 @@ def _write(cfg: BenchRegistrationConfig, results: list[dict]) -> None:
         f"t_err {s['median_t_err']:.5f}, s_err {s['median_s_err']:.5f}; success rate {s['success_rate']:.2f}.",
     ]
     md = cfg.output.with_suffix(".md")
-    write_atomic(md, "\n".join(lines) + "\n")
+    write_text_atomic(md, "\n".join(lines) + "\n")
 
 
 def main(cfg: BenchRegistrationConfig) -> None:

@@ -71,7 +71,7 @@ def main(cfg: BuildDemoConfig) -> None:
         return
     import torch
 
-    from nerfuser_ns.evaluation import write_atomic
+    from nerfuser_ns.files import write_text_atomic
     from nerfuser_ns.training import train_captures
 
     torch.set_num_threads(cfg.threads or max(1, os.cpu_count() or 1))
@@ -82,7 +82,7 @@ def main(cfg: BuildDemoConfig) -> None:
     report["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__}
     report["command"] = "python scripts/build_demo.py " + " ".join(sys.argv[1:])
     out = cfg.runs_dir / "train_report.json"
-    write_atomic(out, json.dumps(report, indent=2) + "\n")
+    write_text_atomic(out, json.dumps(report, indent=2) + "\n")
     console.print(f"report: {out}")
 
 

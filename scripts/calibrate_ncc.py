@@ -86,7 +86,8 @@ def main(cfg: CalibrateNccConfig) -> None:
     from rich.console import Console
 
     from nerfuser_ns import registration, sim3
-    from nerfuser_ns.evaluation import SceneRuns, write_atomic
+    from nerfuser_ns.evaluation import SceneRuns
+    from nerfuser_ns.files import write_text_atomic
     from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig
     from nerfuser_ns.renderers import NerfstudioRenderer
 
@@ -152,7 +153,7 @@ def main(cfg: CalibrateNccConfig) -> None:
         "summary": summary,
         "rows": rows,
     }
-    write_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
+    write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
     lines = [
         f"# Self-check NCC calibration ({report['date']})",
         "",
@@ -172,7 +173,7 @@ def main(cfg: CalibrateNccConfig) -> None:
         f"transform: {summary['min_ncc_exact']}; lowest of accurate ones (r <= 1 deg, t <= 0.05, s <= 0.05): "
         f"{summary['min_ncc_accurate']}.",
     ]
-    write_atomic(cfg.output.with_suffix(".md"), "\n".join(lines) + "\n")
+    write_text_atomic(cfg.output.with_suffix(".md"), "\n".join(lines) + "\n")
     console.print(summary)
 
 

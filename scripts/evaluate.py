@@ -36,7 +36,7 @@ from typing import Any
 
 import tyro
 
-from nerfuser_ns.files import atomic_path
+from nerfuser_ns.files import atomic_path, write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2)}
@@ -142,15 +142,13 @@ class Cache:
 
     def get(self, section: str, inputs: dict, compute, *args, **kwargs) -> Any:  # noqa: ANN001, ANN002, ANN003
         """``compute(*args, **kwargs)`` unless a result for these inputs is stored."""
-        from nerfuser_ns.evaluation import write_atomic
-
         path = self.root / section / f"{_hash(inputs)}.json"
         if path.is_file():
             self.hits += 1
             return json.loads(path.read_text())["result"]
         self.misses += 1
         result = compute(*args, **kwargs)
-        write_atomic(path, json.dumps({"inputs": inputs, "result": result}, indent=1, default=float) + "\n")
+        write_text_atomic(path, json.dumps({"inputs": inputs, "result": result}, indent=1, default=float) + "\n")
         return result
 
 
@@ -599,8 +597,8 @@ def main(cfg: EvaluateConfig) -> None:  # noqa: C901 - a linear sequence of repo
     def write() -> None:
         report["elapsed_s"] = round(time.perf_counter() - start, 1)
         report["cache"] = {"hits": cache.hits, "misses": cache.misses}
-        evaluation.write_atomic(cfg.output_dir / "report.json", json.dumps(report, indent=2, default=str) + "\n")
-        evaluation.write_atomic(cfg.output_dir / "report.md", markdown(report))
+        write_text_atomic(cfg.output_dir / "report.json", json.dumps(report, indent=2, default=str) + "\n")
+        write_text_atomic(cfg.output_dir / "report.md", markdown(report))
 
     scenes = build_scenes(cfg, console)
     report["scenes"] = [

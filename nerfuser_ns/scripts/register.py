@@ -161,15 +161,14 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
     console.print(pairs)
     t, made = record["timings_s"], record.get("compute_timings_s", {})
     reused = record.get("reused", {})
-    parts = []
-    for k, v in t.items():
-        was_reused = any(reused.get("renders", [])) if k == "render" else reused.get("sfm", False) and k in (
-            "features", "matching", "mapping"
-        )
-        if was_reused and made.get(k) is not None:
-            parts.append(f"{k} {v:.1f} (reused; {made[k]:.1f} when made)")
-        else:
-            parts.append(f"{k} {v:.1f}")
+    sfm_reused = reused.get("sfm", False)
+    was_reused = {"render": any(reused.get("renders", [])), "features": sfm_reused, "matching": sfm_reused,
+                  "mapping": sfm_reused}  # fmt: skip
+    parts = [
+        f"{k} {v:.1f} (reused; {made[k]:.1f} when made)" if was_reused.get(k) and made.get(k) is not None
+        else f"{k} {v:.1f}"
+        for k, v in t.items()
+    ]  # fmt: skip
     console.print("time (s): " + ", ".join(parts))
     if has_gt and record["ground_truth"]["failure"]:
         console.print("[bold yellow]ground truth: the registration is a failure by the paper's rule[/]")
