@@ -4,7 +4,8 @@ Pipeline: sample camera poses in each NeRF's own frame (the paper's hemisphere, 
 -> render them (cached in a work folder keyed by the inputs) -> one SfM over the union of the renders with pycolmap
 (SIFT, one shared PINHOLE camera with the exactly known intrinsics, kept fixed) -> per NeRF, recover the SIM(3)
 NeRF -> SfM frame from the same cameras known in both frames (:mod:`nerfuser_ns.sim3`) -> express everything in a
-reference NeRF's frame -> self-check by cross-rendering (SfM can merge unrelated content into one confident, wrong
+reference NeRF's frame -> refine the SIM(3)s by bundle adjustment over each NeRF's rigid camera set
+(:mod:`nerfuser_ns.bundle`) -> self-check by cross-rendering (SfM can merge unrelated content into one confident, wrong
 model) -> one JSON registration file, written atomically.
 
 Anything a renderer of the :class:`nerfuser_ns.renderers.Renderer` protocol can render registers: trained nerfstudio
@@ -35,8 +36,8 @@ from PIL import Image
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from nerfuser_ns import sim3
-from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns import bundle, sim3
+from nerfuser_ns.files import atomic_path, write_text_atomic
 from nerfuser_ns.renderers import Renderer
 from nerfuser_ns.sampling import intrinsics_from_fov, sample_hemisphere_poses
 from nerfuser_ns.scenes import Intrinsics
@@ -146,6 +147,12 @@ class RegistrationConfig:
     element-wise median as in the paper's code; umeyama-ransac: Umeyama on camera centres with LO-RANSAC (pycolmap)."""
     umeyama_max_error: float = 0.05
     """umeyama-ransac: inlier threshold on camera centres, in the NeRF's units."""
+    refine: bool = True
+    """Refine the estimator's SIM(3)s by bundle adjustment in which each NeRF's cameras move together (their poses
+    are known in the NeRF's frame): 7 unknowns per NeRF fitted to every feature seen by two NeRFs, instead of one pose
+    per camera (measured: median rotation error 2-3x lower on CPU-trained nerfacto NeRFs)."""
+    refine_loss_scale_px: float = 1.0
+    """Refinement: soft-L1 loss scale in pixels (reprojection errors well above it barely pull)."""
     reference: int = 0
     """Index of the NeRF whose frame is the common frame."""
     min_registered_views: int = 2
@@ -334,7 +341,9 @@ def render_views_cached(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return ViewSet(renderer.name, folder, c2w, sources, mean_acc, kept, False, meta["render_seconds"])
+    # The poses as stored, so a first run and a rerun on the cache compute from identical numbers.
+    stored = np.array([v["c2w"] for v in meta["views"]], dtype=np.float64)
+    return ViewSet(renderer.name, folder, stored, sources, mean_acc, kept, False, meta["render_seconds"])
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -357,6 +366,8 @@ class SfMResult:
     matching: str
     timings: dict[str, float] = field(default_factory=dict)
     reused: bool = False
+    folder: str = ""
+    """The SfM's work folder (database, ``sparse/`` models, ``observations.npz``)."""
 
 
 def _cheap_pairs(views: Sequence[ViewSet], names: list[list[str]], cfg: SfMConfig) -> list[tuple[str, str]]:
@@ -400,7 +411,7 @@ def run_sfm(
     result_path = folder / "result.json"
     if result_path.is_file():
         try:
-            return SfMResult(**{**json.loads(result_path.read_text()), "reused": True})
+            return SfMResult(**{**json.loads(result_path.read_text()), "reused": True, "folder": str(folder)})
         except (TypeError, ValueError):
             pass
     if folder.exists():
@@ -498,9 +509,91 @@ def run_sfm(
         num_points = rec.num_points3D()
         reproj = float(rec.compute_mean_reprojection_error())
     result = SfMResult(c2w, model_counts, covisible, num_points, reproj, len(used),
-                       "exhaustive" if exhaustive else "pose-guided pairs", timings)
+                       "exhaustive" if exhaustive else "pose-guided pairs", timings, folder=str(folder))
+    if recons:
+        _save_observations(recons[0], folder / "observations.npz")
     write_text_atomic(result_path, json.dumps(asdict(result)) + "\n")
     return result
+
+
+def _save_observations(rec, path: Path) -> None:
+    """The feature tracks of an SfM model as flat arrays (what the rigid-set bundle adjustment needs)."""
+    reg = list(rec.reg_image_ids())
+    row = {image_id: n for n, image_id in enumerate(reg)}
+    names = [rec.image(i).name for i in reg]
+    xyz, cam, point, xy = [], [], [], []
+    for p_idx, p in enumerate(rec.points3D.values()):
+        xyz.append(p.xyz)
+        for el in p.track.elements:
+            cam.append(row[el.image_id])
+            point.append(p_idx)
+            xy.append(rec.image(el.image_id).points2D[el.point2D_idx].xy)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(
+            tmp, names=np.array(names), points=np.asarray(xyz, np.float64).reshape(-1, 3),
+            obs_cam=np.asarray(cam, np.int32), obs_point=np.asarray(point, np.int32),
+            obs_xy=np.asarray(xy, np.float64).reshape(-1, 2),
+        )
+
+
+def load_observations(sfm: SfMResult) -> dict[str, np.ndarray]:
+    """Feature tracks of the largest SfM model (SfM frame): ``names``, ``points``, ``obs_cam``, ``obs_point``,
+    ``obs_xy``. Work folders written before these were stored get them from their ``sparse/`` models."""
+    folder = Path(sfm.folder)
+    path = folder / "observations.npz"
+    if not path.is_file():
+        import pycolmap
+
+        models = [pycolmap.Reconstruction(str(d)) for d in sorted((folder / "sparse").glob("*")) if d.is_dir()]
+        if not models:
+            raise RegistrationError(f"{folder}: no SfM model to refine on; delete the folder to rerun the SfM")
+        _save_observations(max(models, key=lambda r: r.num_reg_images()), path)
+    with np.load(path) as z:
+        return {key: z[key] for key in z.files}
+
+
+def refine_transforms(
+    views: Sequence[ViewSet], sfm: SfMResult, T_to_C: Float[np.ndarray, "k 4 4"], ref: int, intr: Intrinsics,
+    loss_scale_px: float,
+) -> tuple[np.ndarray, dict]:
+    """Rigid-set bundle adjustment (:func:`nerfuser_ns.bundle.refine_sim3_bundle`) from the estimator's transforms.
+
+    Returns the refined NeRF -> reference transforms and a summary; keeps the initial ones (``used`` False) when the
+    refinement does not lower the reprojection error or no point is seen by two NeRFs.
+    """
+    T0 = sim3.to_reference_frame(T_to_C, ref)
+    obs = load_observations(sfm)
+    pose = {n: (i, vs.c2w[k]) for i, vs in enumerate(views) for k, n in enumerate(vs.image_names)}
+    names = [str(n) for n in obs["names"]]
+    if any(n not in pose for n in names):
+        raise RegistrationError(f"{sfm.folder}: SfM model images do not match the renders; delete the folder")
+    cam_nerf = np.array([pose[n][0] for n in names], dtype=int)
+    cam_c2w = np.stack([pose[n][1] for n in names])
+    # Only points seen by two NeRFs tie the transforms together.
+    pairs = np.unique(np.stack([obs["obs_point"], cam_nerf[obs["obs_cam"]]], 1), axis=0)
+    linked = np.bincount(pairs[:, 0], minlength=len(obs["points"])) >= 2
+    keep = linked[obs["obs_point"]]
+    summary = {"used": False, "points": int(linked.sum()), "observations": int(keep.sum())}
+    if keep.sum() == 0:
+        return T0, {**summary, "reason": "no 3D point is seen by two NeRFs"}
+    new_id = np.cumsum(linked) - 1
+    points = sim3.transform_points(sim3.invert_sim3(T_to_C[ref]), obs["points"][linked])
+    res = bundle.refine_sim3_bundle(
+        T0, cam_c2w, cam_nerf, (intr.fx, intr.fy, intr.cx, intr.cy), points, obs["obs_cam"][keep],
+        new_id[obs["obs_point"][keep]], obs["obs_xy"][keep], ref=ref, loss_scale_px=loss_scale_px,
+    )
+    summary.update({
+        "rms_px_before": _f(res.rms_px_before), "rms_px_after": _f(res.rms_px_after),
+        "median_px_after": _f(res.median_px_after), "inlier_fraction": _f(res.inlier_fraction),
+        "iterations": res.iterations, "solver": res.message,
+    })
+    if not (np.isfinite(res.T_to_ref).all() and res.rms_px_after <= res.rms_px_before):
+        return T0, {**summary, "reason": "the refinement did not lower the reprojection error"}
+    change = sim3.sim3_errors(res.T_to_ref, T0)
+    summary["used"] = True
+    summary["change"] = [{"r_deg": _f(change.r_err_deg[i]), "t": _f(change.t_err[i]), "s": _f(change.s_err[i])}
+                         for i in range(len(T0))]
+    return res.T_to_ref, summary
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -783,6 +876,11 @@ def register(
         estimates.append(est)
     T_to_C = np.stack([e.T for e in estimates])
     T_to_ref = sim3.to_reference_frame(T_to_C, ref)
+    refinement = None
+    if config.refine:
+        with console.status("refining the transforms (rigid-set bundle adjustment)"):
+            T_to_ref, refinement = refine_transforms(views, sfm, T_to_C, ref, intr, config.refine_loss_scale_px)
+        T_to_C = T_to_C[ref] @ T_to_ref
     timings["solve"] = time.perf_counter() - t0
 
     # 4. Overlap between NeRFs (3D points seen by both) and the cross-render self-check.
@@ -839,6 +937,7 @@ def register(
             "render_folder": str(vs.folder),
             "renders_reused": vs.reused,
             "estimator": est.method,
+            "refinement_change": refinement["change"][i] if refinement and refinement["used"] else None,
             "cameras_used": est.num_cameras,
             "scale_to_sfm": est.scale,
             "scale_spread": est.scale_spread,
@@ -869,6 +968,7 @@ def register(
             "mean_reprojection_error_px": _f(sfm.mean_reprojection_error), "reused": sfm.reused,
             "intrinsics": asdict(intr),
         },
+        "refinement": refinement,
         "settings": asdict(config),
         "timings_s": {k_: round(v, 3) for k_, v in timings.items()},
         "compute_timings_s": {

@@ -143,7 +143,7 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         row = [
             n["name"], str(v["rendered"]), str(v["kept"]), str(v["registered"]), _fmt(n["scale_to_reference"], ".4g"),
             _fmt(n["scale_spread"], ".2e"), _fmt(res["rotation_deg_median"], ".3f"), _fmt(res["centre_median"], ".2e"),
-            n["estimator"],
+            n["estimator"] + (" + BA" if n.get("refinement_change") else ""),
         ]
         if has_gt:
             g = n["ground_truth"]
@@ -159,6 +159,17 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         pairs.add_row(" / ".join(p["names"]), str(p["covisible_points"]), "-" if sc is None else _fmt(sc["ncc"], ".3f"),
                       "-" if sc is None else ("[green]passed[/]" if sc["passed"] else "[red]failed[/]"))
     console.print(pairs)
+    ref = record.get("refinement")
+    if ref is not None:
+        if ref["used"]:
+            console.print(
+                f"rigid-set bundle adjustment: {ref['points']} points seen by two NeRFs, {ref['observations']} "
+                f"observations, reprojection RMS {ref['rms_px_before']:.2f} -> {ref['rms_px_after']:.2f} px "
+                f"(median {ref['median_px_after']:.2f}); largest change "
+                f"{max(c['r_deg'] for c in ref['change']):.3f} deg"
+            )
+        else:
+            console.print(f"[yellow]rigid-set bundle adjustment not used: {ref.get('reason', 'failed')}[/]")
     t, made = record["timings_s"], record.get("compute_timings_s", {})
     reused = record.get("reused", {})
     sfm_reused = reused.get("sfm", False)
