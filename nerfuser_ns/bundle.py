@@ -106,6 +106,8 @@ def refine_sim3_bundle(
     points = np.asarray(points, dtype=np.float64)
     if not 0 <= ref < k:
         raise ValueError(f"reference index {ref} out of range for {k} NeRFs")
+    if not np.allclose(T_to_ref[ref], np.eye(4), atol=1e-9):
+        raise ValueError(f"T_to_ref[{ref}] (the reference) must be the identity")
     if len(obs_cam) != len(obs_point) or len(obs_cam) != len(obs_xy):
         raise ValueError("observation arrays differ in length")
     if len(obs_cam) == 0:

@@ -380,15 +380,21 @@ class NerfuserModel(Model):
         def set_tau(element) -> None:  # noqa: ANN001
             self.tau = None if float(element.value) <= 0 else max(float(element.value), 1.0)
 
+        # The NeRF of the `nerf` method, picked by name ("index: name" so equal names stay distinct).
+        reference_options = [f"{i}: {name}" for i, name in enumerate(self.nerf_names)]
+
         def set_reference(element) -> None:  # noqa: ANN001
-            self.reference_nerf = int(element.value) % self.num_nerfs
+            self.reference_nerf = reference_options.index(element.value)
 
         self.viewer_blend_method = ViewerDropdown(
             "NeRFuser blend method", self.blend_method, list(BLEND_METHODS), cb_hook=set_method
         )
         self.viewer_gamma = ViewerNumber("NeRFuser gamma", float(self.gamma), cb_hook=set_gamma)
         self.viewer_tau = ViewerNumber("NeRFuser tau (0: off)", float(self.tau or 0.0), cb_hook=set_tau)
-        self.viewer_reference = ViewerNumber("NeRFuser reference NeRF", int(self.reference_nerf), cb_hook=set_reference)
+        self.viewer_reference = ViewerDropdown(
+            "NeRFuser reference NeRF", reference_options[self.reference_nerf % self.num_nerfs], reference_options,
+            cb_hook=set_reference,
+        )
 
         from nerfuser_ns.viewer import NerfuserSceneControl
 

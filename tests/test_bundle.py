@@ -94,5 +94,7 @@ def test_bad_inputs():
         bundle.refine_sim3_bundle(T0, cams, nerf, K, P0, oc, op[:-1], xy)
     with pytest.raises(ValueError, match="no observations"):
         bundle.refine_sim3_bundle(T0, cams, nerf, K, P0, oc[:0], op[:0], xy[:0])
+    with pytest.raises(ValueError, match="must be the identity"):
+        bundle.refine_sim3_bundle(T0, cams, nerf, K, P0, oc, op, xy, ref=1)
     with pytest.raises(ValueError, match="out of range"):
         bundle.refine_sim3_bundle(T0, cams, nerf, K, P0, oc, op, xy, ref=2)

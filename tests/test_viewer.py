@@ -388,7 +388,8 @@ def test_controls_change_the_next_frame(session):
     model = running.model
     before = wait_for(lambda: log.after(0, state="high", method="idw-sample", output="rgb"), 120, "a first frame")
     changed = time.monotonic()
-    model.viewer_reference.value = 1
+    assert model.viewer_reference.options == [f"{i}: {n}" for i, n in enumerate(model.nerf_names)]
+    model.viewer_reference.value = model.viewer_reference.options[1]
     model.viewer_blend_method.value = "nerf"  # NeRF b alone
     after = wait_for(lambda: log.after(changed, state="high", method="nerf", reference=1), 120, "a new frame")
     diff = np.abs(after["image"].astype(np.float32) - before["image"].astype(np.float32)).mean() / 255
