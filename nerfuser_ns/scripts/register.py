@@ -138,12 +138,12 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
     if has_gt:
         for col in ("r_err (deg)", "t_err", "s_err", "ok"):
             table.add_column(col, justify="right")
-    for n in record["nerfs"]:
+    for i, n in enumerate(record["nerfs"]):
         v, res = n["views"], n["residuals"]
         row = [
             n["name"], str(v["rendered"]), str(v["kept"]), str(v["registered"]), _fmt(n["scale_to_reference"], ".4g"),
             _fmt(n["scale_spread"], ".2e"), _fmt(res["rotation_deg_median"], ".3f"), _fmt(res["centre_median"], ".2e"),
-            n["estimator"] + (" + BA" if n.get("refinement_change") else ""),
+            n["estimator"] + (" + BA" if n.get("refinement_change") and i != record["reference"]["index"] else ""),
         ]
         if has_gt:
             g = n["ground_truth"]
