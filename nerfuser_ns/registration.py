@@ -856,7 +856,7 @@ def register(
 
     # 3. Per NeRF: its SIM(3) into the SfM frame C, then into the reference frame.
     t0 = time.perf_counter()
-    estimates = []
+    estimates, G_sfms = [], []
     for vs in views:
         G_sfm = np.full((len(vs.c2w), 4, 4), np.nan)
         for n, (name, kept) in enumerate(zip(vs.image_names, vs.kept, strict=True)):
@@ -874,6 +874,7 @@ def register(
         if not (np.isfinite(est.T).all() and est.scale > 0):
             raise RegistrationError(f"{vs.name}: the SIM(3) estimate is NaN or degenerate; {SUGGESTION}")
         estimates.append(est)
+        G_sfms.append(G_sfm)
     T_to_C = np.stack([e.T for e in estimates])
     T_to_ref = sim3.to_reference_frame(T_to_C, ref)
     refinement = None
@@ -923,7 +924,8 @@ def register(
     nerfs = []
     for i, (r, vs, est) in enumerate(zip(renderers, views, estimates, strict=True)):
         registered = sum(1 for n, kept in zip(vs.image_names, vs.kept, strict=True) if kept and n in sfm.c2w)
-        rot, cen = est.rot_residuals_deg[est.used], est.centre_residuals[est.used]
+        # SfM cameras against the final transform (the refined one, when refined).
+        rot, cen = sim3.pose_residuals(T_to_C[i], vs.c2w[est.used], G_sfms[i][est.used])
         config_path = getattr(r, "config_path", None)
         nerfs.append({
             "name": r.name,
@@ -945,7 +947,7 @@ def register(
             "residuals": {
                 "rotation_deg_median": _f(np.median(rot)), "rotation_deg_max": _f(np.max(rot)),
                 "centre_median": _f(np.median(cen)), "centre_max": _f(np.max(cen)),
-                "centre_units": "this NeRF's units",
+                "centre_units": "this NeRF's units", "of": "the SfM's cameras against the final transform",
             },
             "ground_truth": None if gt is None else gt[i],
         })

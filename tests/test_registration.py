@@ -160,6 +160,8 @@ def test_object_centric_two_nerfs_recovers_ground_truth(oc_record):
     ref = rec["refinement"]
     assert ref["used"] and ref["points"] > 50 and ref["rms_px_after"] <= ref["rms_px_before"]
     assert b["refinement_change"]["r_deg"] > 0 and a["refinement_change"] == {"r_deg": 0.0, "t": 0.0, "s": 0.0}
+    # The SfM's own cameras agree with the refined transform to a fraction of a degree.
+    assert b["residuals"]["rotation_deg_median"] < 0.3 and b["residuals"]["centre_median"] < 0.01
     assert rec["ground_truth"]["failure"] is False
     (pair,) = rec["pairs"]
     np.testing.assert_allclose(pair["T_j_to_i"], b["T_to_reference"], atol=1e-9)
