@@ -48,6 +48,9 @@ class BenchRegistrationConfig:
     """Render height."""
     fov_deg: float = 65.0
     """Render horizontal field of view."""
+    refine: bool = True
+    """Rigid-set bundle adjustment after the paper's estimator (--no-refine: the estimator alone; use another
+    --output, cases are keyed by scene, poses and seed only)."""
     output: Path = Path("outputs/bench/registration.json")
     """JSON results (a markdown summary is written beside it)."""
     resume: bool = True
@@ -138,7 +141,8 @@ def main(cfg: BenchRegistrationConfig) -> None:
             sampling=PoseSamplingConfig(
                 source=cfg.source, max_training_poses=count, num_poses=count, seed=seed, width=cfg.width,
                 height=cfg.height, fov_deg=cfg.fov_deg,
-            )
+            ),
+            refine=cfg.refine,
         )  # fmt: skip
         out = cfg.output.parent / "registration_cases" / f"{scene.name}-{cfg.source}-{count}-seed{seed}.json"
         console.rule(case)
