@@ -296,33 +296,38 @@ def test_self_check_rejects_a_wrong_transform(oc_layout, oc_renderers, oc_record
     assert bad.score < config.ncc_threshold
 
 
+WRONG = sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 40.0, 0.0])))  # 40 deg about the frame's origin
+
+
+def perturb_second_estimate(monkeypatch) -> None:
+    """The paper's estimator returns NeRF B's transform rotated by ``WRONG``."""
+    real = sim3.estimate_sim3_from_poses
+    calls = []
+
+    def perturbed(G_nerf, G_sfm, **kw):
+        est = real(G_nerf, G_sfm, **kw)
+        calls.append(est)
+        return dataclasses.replace(est, T=WRONG @ est.T) if len(calls) == 2 else est
+
+    monkeypatch.setattr(reg.sim3, "estimate_sim3_from_poses", perturbed)
+
+
 @pytest.mark.parametrize("refine", [False, True])
 def test_register_fails_when_the_estimate_is_wrong(
     oc_renderers, oc_record, work, monkeypatch, tmp_path, capsys, refine
 ):
-    wrong = sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 40.0, 0.0])))  # 40 deg about the frame's origin
-    if refine:
+    if refine:  # the refinement would correct a wrong start (next test): break its output instead
         real_refine = reg.refine_transforms
 
         def perturbed_refine(*args, **kw):
             T, summary = real_refine(*args, **kw)
             T = T.copy()
-            T[1] = wrong @ T[1]
+            T[1] = WRONG @ T[1]
             return T, summary
 
         monkeypatch.setattr(reg, "refine_transforms", perturbed_refine)
     else:
-        real = sim3.estimate_sim3_from_poses
-        calls = []
-
-        def perturbed(G_nerf, G_sfm, **kw):
-            est = real(G_nerf, G_sfm, **kw)
-            calls.append(est)
-            if len(calls) == 2:  # NeRF B
-                return dataclasses.replace(est, T=wrong @ est.T)
-            return est
-
-        monkeypatch.setattr(reg.sim3, "estimate_sim3_from_poses", perturbed)
+        perturb_second_estimate(monkeypatch)
     rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, refine=refine)
     assert_one_line_error(rc, out, err, "capture_a and capture_b", "self-check failed")
     rejected = json.loads((work / "rejected_registration.json").read_text())
@@ -331,17 +336,7 @@ def test_register_fails_when_the_estimate_is_wrong(
 
 def test_refinement_corrects_a_wrong_start(oc_layout, oc_renderers, oc_record, work, monkeypatch):
     # The bundle adjustment fits the image evidence, so a start 40 deg off still converges to the right answer.
-    real = sim3.estimate_sim3_from_poses
-    calls = []
-
-    def perturbed(G_nerf, G_sfm, **kw):
-        est = real(G_nerf, G_sfm, **kw)
-        calls.append(est)
-        if len(calls) == 2:
-            return dataclasses.replace(est, T=sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 40.0, 0.0]))) @ est.T)
-        return est
-
-    monkeypatch.setattr(reg.sim3, "estimate_sim3_from_poses", perturbed)
+    perturb_second_estimate(monkeypatch)
     rec = reg.register(oc_renderers, small_config(), work, gt_nerf_to_world=gt_of(oc_layout))
     assert rec["refinement"]["change"][1]["r_deg"] > 39
     np.testing.assert_allclose(rec["nerfs"][1]["T_to_reference"], oc_record["nerfs"][1]["T_to_reference"], atol=1e-5)
