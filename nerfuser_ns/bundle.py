@@ -26,9 +26,6 @@ from scipy.sparse import coo_matrix
 
 from nerfuser_ns import sim3
 
-OPENCV_FROM_OPENGL = np.diag([1.0, -1.0, -1.0])
-"""Camera axes: nerfstudio's OpenGL (y up, looking -z) to COLMAP's OpenCV (y down, looking +z)."""
-
 
 @dataclass
 class BundleResult:

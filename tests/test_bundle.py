@@ -6,20 +6,10 @@ import numpy as np
 import pytest
 
 from nerfuser_ns import bundle, sim3
+from nerfuser_ns.sampling import look_at
 
 K = (150.0, 150.0, 96.0, 72.0)
 W, H = 192, 144
-
-
-def look_at(c: np.ndarray) -> np.ndarray:
-    """OpenGL camera-to-world at ``c`` looking at the origin, +z up."""
-    back = c / np.linalg.norm(c)
-    x = np.cross([0.0, 0.0, 1.0], back)
-    x /= np.linalg.norm(x)
-    G = np.eye(4)
-    G[:3, :3] = np.stack([x, np.cross(back, x), back], 1)
-    G[:3, 3] = c
-    return G
 
 
 def synthetic(seed: int, k: int = 3, per_nerf: int = 20, noise_px: float = 0.0, outliers: float = 0.0, ref: int = 0):
@@ -35,7 +25,8 @@ def synthetic(seed: int, k: int = 3, per_nerf: int = 20, noise_px: float = 0.0, 
         for _ in range(per_nerf):
             d = rng.normal(size=3)
             d[2] = abs(d[2]) + 0.2
-            cams.append(sim3.transform_poses(sim3.invert_sim3(T_true[i]), look_at(2.0 * d / np.linalg.norm(d))))
+            pose_ref = look_at(2.0 * d / np.linalg.norm(d), np.zeros(3))
+            cams.append(sim3.transform_poses(sim3.invert_sim3(T_true[i]), pose_ref))
             nerf.append(i)
     cams, nerf = np.stack(cams), np.array(nerf)
     M = sim3.invert_sim3(cams)[:, :3] @ sim3.invert_sim3(T_true)[nerf]
@@ -56,7 +47,7 @@ def synthetic(seed: int, k: int = 3, per_nerf: int = 20, noise_px: float = 0.0, 
 
 
 def test_project_centre_and_scale_invariance():
-    c2w = look_at(np.array([0.0, -2.0, 0.0]))
+    c2w = look_at(np.array([0.0, -2.0, 0.0]), np.zeros(3))
     M = sim3.invert_sim3(c2w)[None, :3]
     np.testing.assert_allclose(bundle.project(M, np.zeros((1, 3)), K), [[K[2], K[3]]], atol=1e-12)
     p = np.array([[0.1, 0.0, 0.2]])  # right of and above the axis: x > cx, y < cy (pixel rows go down)
