@@ -49,8 +49,9 @@ class BenchRegistrationConfig:
     fov_deg: float = 65.0
     """Render horizontal field of view."""
     refine: bool = True
-    """Rigid-set bundle adjustment after the paper's estimator (--no-refine: the estimator alone; use another
-    --output, cases are keyed by scene, poses and seed only)."""
+    """Rigid-set bundle adjustment after the paper's estimator (--no-refine: the estimator alone; its cases and
+    registration files get a -norefine suffix, so they never stand in for refined ones; use another --output to keep
+    the summaries apart)."""
     output: Path = Path("outputs/bench/registration.json")
     """JSON results (a markdown summary is written beside it)."""
     resume: bool = True
@@ -133,7 +134,8 @@ def main(cfg: BenchRegistrationConfig) -> None:
         done = {r["case"]: r for r in json.loads(cfg.output.read_text())["cases"]}
     results = list(done.values())
     for scene, count, seed in _cases(cfg):
-        case = f"{scene.name}/{cfg.source}-{count}-seed{seed}"
+        label = f"{cfg.source}-{count}-seed{seed}" + ("" if cfg.refine else "-norefine")
+        case = f"{scene.name}/{label}"
         if case in done:
             continue
         captures, configs, gt_nerf_to_world = scene.captures, scene.configs, scene.nerf_to_world()
@@ -144,7 +146,7 @@ def main(cfg: BenchRegistrationConfig) -> None:
             ),
             refine=cfg.refine,
         )  # fmt: skip
-        out = cfg.output.parent / "registration_cases" / f"{scene.name}-{cfg.source}-{count}-seed{seed}.json"
+        out = cfg.output.parent / "registration_cases" / f"{scene.name}-{label}.json"
         console.rule(case)
         t = time.perf_counter()
         try:
