@@ -20,8 +20,10 @@ Methods (``BlendMethod``)
 * ``"idw-3d"``: pixel-wise IDW on the distance of each NeRF's expected surface point to its origin (Block-NeRF).
 * ``"idw-sample"``: NeRFuser's sample-wise IDW on merged ray samples (``merge_samples`` + ``idw_sample_blend``).
 
-The distance test (``distance_test`` / ``apply_distance_test``) overrides any IDW method with ``"nearest"``
-where the second-nearest NeRF is more than ``tau`` times as far from the camera as the nearest.
+The distance test (``distance_mask``) leaves out of every IDW method the NeRFs whose origin is more than ``tau``
+times as far from the camera as the nearest one's. For two NeRFs this is the paper's test (the ratio of the two
+distances above ``tau``: the nearest NeRF alone); for more it keeps the nearest NeRFs and drops only the far ones, as
+the authors' reference code does, instead of letting a far NeRF take the samples nearest to it.
 """
 
 from __future__ import annotations
@@ -49,7 +51,9 @@ def _pad_right(x: Tensor, ndim: int) -> Tensor:
 # Inverse distance weighting
 
 
-def idw_weights(distances: Float[Tensor, " num_nerfs *bs"], gamma: float) -> Float[Tensor, " num_nerfs *bs"]:
+def idw_weights(
+    distances: Float[Tensor, " num_nerfs *bs"], gamma: float, mask: Bool[Tensor, " num_nerfs *m"] | None = None
+) -> Float[Tensor, " num_nerfs *bs"]:
     """Inverse distance weights ``w_i ∝ d_i^-gamma``, normalised over the NeRF axis (dim 0).
 
     Computed in log space as ``softmax(-gamma * log d)`` so that large ``gamma`` neither overflows nor underflows
@@ -60,19 +64,26 @@ def idw_weights(distances: Float[Tensor, " num_nerfs *bs"], gamma: float) -> Flo
     Args:
         distances: non-negative distances of each blending element to each NeRF's origin.
         gamma: blending rate, ``>= 0``.
+        mask: NeRFs that take part (``distance_mask``), its dims the leading ones of ``distances``; the others get
+            weight 0 and the weights are normalised over the rest. Every element needs one NeRF taking part.
 
     Returns:
         Weights with the shape of ``distances``, summing to 1 over dim 0.
     """
     if gamma < 0 or math.isnan(gamma):
         raise ValueError(f"gamma must be >= 0, got {gamma}")
-    n = distances.shape[0]
+    if mask is None:
+        keep = torch.ones_like(distances, dtype=torch.bool)
+    else:
+        keep = _pad_right(mask, distances.ndim).expand_as(distances)
     if gamma == 0:
-        return torch.full_like(distances, 1.0 / n)
-    zero = distances <= 0
-    # log d relative to the nearest NeRF: >= 0, exactly 0 at the nearest, so the max logit is 0 and softmax never
-    # sees inf - inf, even for gamma = 1e30.
+        k = keep.to(distances.dtype)
+        return k / k.sum(dim=0, keepdim=True)
+    zero = (distances <= 0) & keep
+    # log d relative to the nearest NeRF taking part: >= 0, exactly 0 at the nearest, so the max logit is 0 and
+    # softmax never sees inf - inf, even for gamma = 1e30; NeRFs left out are at log d = inf, weight exactly 0.
     log_d = torch.log(distances.clamp(min=torch.finfo(distances.dtype).tiny))
+    log_d = torch.where(keep, log_d, math.inf)
     rel = log_d - log_d.min(dim=0, keepdim=True).values
     if math.isinf(gamma):
         w = (rel <= 0).to(distances.dtype)
@@ -111,7 +122,8 @@ def distance_ratio(camera_distances: Float[Tensor, " num_nerfs *bs"]) -> Float[T
 
 
 def distance_test(camera_distances: Float[Tensor, " num_nerfs *bs"], tau: float) -> Bool[Tensor, " *bs"]:
-    """The paper's distance test: True where ONLY the nearest NeRF should be used (ratio > ``tau``).
+    """The paper's distance test: True where ONLY the nearest NeRF is used (every other NeRF is more than ``tau``
+    times as far from the camera, i.e. ``distance_ratio > tau``).
 
     Args:
         camera_distances: distance from the query camera centre to each NeRF's origin (common frame).
@@ -120,22 +132,39 @@ def distance_test(camera_distances: Float[Tensor, " num_nerfs *bs"], tau: float)
     return distance_ratio(camera_distances) > tau
 
 
+def distance_mask(
+    camera_distances: Float[Tensor, " num_nerfs *bs"], tau: float | None
+) -> Bool[Tensor, " num_nerfs *bs"]:
+    """The NeRFs that take part in blending: those at most ``tau`` times as far from the camera as the nearest.
+
+    The nearest NeRF always takes part (with the camera on an origin, only the NeRFs at distance 0 do). For two
+    NeRFs this is the paper's test; for more, far NeRFs are dropped one by one instead of all or none. ``tau=None``
+    keeps every NeRF.
+    """
+    if tau is None:
+        return torch.ones_like(camera_distances, dtype=torch.bool)
+    return camera_distances <= tau * camera_distances.min(dim=0, keepdim=True).values
+
+
 def apply_distance_test(
     weights: Float[Tensor, " num_nerfs *bs"],
     camera_distances: Float[Tensor, " num_nerfs *cam"],
     tau: float | None,
 ) -> Float[Tensor, " num_nerfs *bs"]:
-    """Replaces blending weights by the one-hot nearest NeRF wherever the distance test says so.
+    """Restricts blending weights to the NeRFs that pass the distance test (``distance_mask``), renormalised.
 
     ``camera_distances`` may have fewer dims than ``weights`` (e.g. ``[N]`` per camera against ``[N, H, W]`` per
     pixel, or ``[N, R]`` per ray against ``[N, R, M]`` per sample): its dims are the leading ones of ``weights``.
-    ``tau=None`` disables the test.
+    Where the NeRFs taking part have no weight at all, the nearest NeRF gets it. ``tau=None`` disables the test.
+    Prefer ``idw_weights(..., mask=distance_mask(...))`` for IDW weights: it cannot underflow.
     """
     if tau is None:
         return weights
-    mask = _pad_right(distance_test(camera_distances, tau), weights.ndim - 1)
-    one_hot = _pad_right(nearest_weights(camera_distances), weights.ndim).to(weights.dtype)
-    return torch.where(mask.unsqueeze(0), one_hot.expand_as(weights), weights)
+    keep = _pad_right(distance_mask(camera_distances, tau), weights.ndim)
+    w = torch.where(keep, weights, 0.0)
+    total = w.sum(dim=0, keepdim=True)
+    one_hot = _pad_right(nearest_weights(camera_distances), weights.ndim).to(weights.dtype).expand_as(weights)
+    return torch.where(total > 0, w / torch.where(total > 0, total, 1.0), one_hot)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -168,7 +197,7 @@ def idw_2d_weights(
     camera_distances: Float[Tensor, " num_nerfs *cam"], gamma: float, tau: float | None = None
 ) -> Float[Tensor, " num_nerfs *cam"]:
     """IDW-2D image-wise weights from camera-centre-to-origin distances, with the optional distance test."""
-    return apply_distance_test(idw_weights(camera_distances, gamma), camera_distances, tau)
+    return idw_weights(camera_distances, gamma, distance_mask(camera_distances, tau))
 
 
 def idw_2d(
@@ -208,10 +237,7 @@ def idw_3d_weights(
     points = expected_points(ray_origins, ray_directions, depths)
     origins = nerf_origins.reshape((nerf_origins.shape[0],) + (1,) * (depths.ndim - 1) + (3,))
     d = torch.linalg.vector_norm(points - origins, dim=-1)
-    w = idw_weights(d, gamma)
-    if camera_distances is not None:
-        w = apply_distance_test(w, camera_distances, tau)
-    return w
+    return idw_weights(d, gamma, None if camera_distances is None else distance_mask(camera_distances, tau))
 
 
 def idw_3d(
@@ -268,7 +294,7 @@ def image_blend_weights(
     if method == "idw-3d":
         if surface_distances is None:
             raise ValueError("idw-3d needs surface_distances")
-        return apply_distance_test(idw_weights(surface_distances, gamma), camera_distances, tau)
+        return idw_weights(surface_distances, gamma, distance_mask(camera_distances, tau))
     raise ValueError(f"{method!r} is not a render-level blending method")
 
 
@@ -388,10 +414,18 @@ def sample_distances(
     ts: Float[Tensor, "*bs num_points"],
     nerf_origins: Float[Tensor, "num_nerfs 3"],
 ) -> Float[Tensor, "num_nerfs *bs num_points"]:
-    """Distance of the points ``o + t d`` along each ray to each NeRF origin (all in the common frame)."""
-    points = ray_origins.unsqueeze(-2) + ts.unsqueeze(-1) * ray_directions.unsqueeze(-2)
-    origins = nerf_origins.reshape((nerf_origins.shape[0],) + (1,) * (points.ndim - 1) + (3,))
-    return torch.linalg.vector_norm(points.unsqueeze(0) - origins, dim=-1)
+    """Distance of the points ``o + t d`` along each ray to each NeRF origin (all in the common frame).
+
+    As ``sqrt(h^2 + |d|^2 (t - t0)^2)`` with ``t0`` the ray's closest approach to the origin and ``h`` its distance
+    there: per-ray terms plus a few ops per point, never an ``[N, *bs, P, 3]`` tensor, and no cancellation.
+    """
+    origins = nerf_origins.reshape((nerf_origins.shape[0],) + (1,) * (ray_origins.ndim - 1) + (3,))
+    rel = ray_origins.unsqueeze(0) - origins  # [N, *bs, 3]
+    dd = (ray_directions * ray_directions).sum(-1).clamp(min=torch.finfo(ray_directions.dtype).tiny)  # [*bs]
+    t0 = -(rel * ray_directions.unsqueeze(0)).sum(-1) / dd  # [N, *bs]
+    h2 = (rel + t0.unsqueeze(-1) * ray_directions.unsqueeze(0)).square().sum(-1)  # [N, *bs]
+    along = ts.unsqueeze(0) - t0.unsqueeze(-1)  # [N, *bs, P]
+    return torch.sqrt(h2.unsqueeze(-1) + dd.unsqueeze(-1) * along * along)
 
 
 def merged_sample_distances(
@@ -477,9 +511,8 @@ def idw_sample_blend(
         c = torch.cat([c, background_rgbs.unsqueeze(-2)], dim=-2)
         distances = torch.cat([distances, background_distances.unsqueeze(-1)], dim=-1)
 
-    w = idw_weights(distances, gamma)  # normalisation (1)
-    if camera_distances is not None:
-        w = apply_distance_test(w, camera_distances, tau)
+    mask = None if camera_distances is None else distance_mask(camera_distances, tau)
+    w = idw_weights(distances, gamma, mask)  # normalisation (1), over the NeRFs that pass the distance test
     q = w * p
     total = q.sum(dim=(0, -1))
     # Fallback for rays whose IDW-weighted mass vanished: the plain mean over NeRFs.

@@ -278,8 +278,9 @@ class NerfuserModelConfig(ModelConfig):
     gamma: float = 5.0
     """IDW blending rate (w ~ d^-gamma); 0: mean, inf: nearest. The paper uses 5 (objects), 10 (street)."""
     tau: float | None = 1.8
-    """Distance test: where the 2nd-nearest NeRF origin is > tau times as far from the camera as the nearest, only the
-    nearest NeRF is used (IDW methods). None disables it. The paper uses 1.8 (objects), 1.2 (street)."""
+    """Distance test (IDW methods): NeRFs whose origin is more than tau times as far from the camera as the nearest
+    one's are left out (two NeRFs: the nearest alone past that ratio). None disables it. The paper uses 1.8
+    (objects), 1.2 (street)."""
     reference_nerf: int = 0
     """The NeRF rendered by the ``nerf`` method."""
     share_outputs: bool = True

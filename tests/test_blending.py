@@ -1,5 +1,6 @@
 """Tests for nerfuser_ns.blending (pure tensor math, CPU, tiny tensors)."""
 
+import math
 import time
 
 import pytest
@@ -10,6 +11,7 @@ from nerfuser_ns.blending import (
     MergedSamples,
     apply_distance_test,
     camera_to_origin_distances,
+    distance_mask,
     distance_ratio,
     distance_test,
     idw_2d,
@@ -23,6 +25,7 @@ from nerfuser_ns.blending import (
     nearest_blend,
     nearest_index,
     render_samples,
+    sample_distances,
 )
 
 GAMMAS = [0.01, 1.0, 100.0, 1e4]
@@ -298,6 +301,47 @@ def test_idw_sample_distance_test_override_gives_nearest_render():
     torch.testing.assert_close(out.rgb[1:3], plain.rgb[1:3])
 
 
+def test_idw_sample_distance_test_drops_far_nerfs_only():
+    # Three NeRFs, the third far from every camera: with tau it takes no part, and the blend is exactly that of the
+    # two near NeRFs alone (weights, colours and backgrounds), even where its origin is nearest to the samples.
+    n, r, k = 3, 6, 5
+    starts, ends, p, rgbs, bg = random_nerf_samples(n, r, k, seed=11)
+    # The third NeRF samples where the first does, so it adds no merged boundaries (only zero-length intervals).
+    starts[2], ends[2] = starts[0], ends[0]
+    origins = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 0.0, 4.0]])
+    o = torch.tensor([[0.5, 0.2, 0.0]]).expand(r, 3)
+    d = torch.nn.functional.normalize(torch.randn(r, 3, generator=torch.Generator().manual_seed(2)), dim=-1)
+    d[:, 2] = d[:, 2].abs()  # towards the third origin: its samples come nearest to it
+    cam_d = camera_to_origin_distances(o, origins)
+    assert distance_mask(cam_d, 1.8).tolist() == [[True] * r, [True] * r, [False] * r]
+
+    def blend(sl, tau):
+        merged = merge_samples(starts[sl], ends[sl], p[sl], rgbs[sl])
+        dist, bg_dist = merged_sample_distances(merged, o, d, origins[sl])
+        return idw_sample_blend(merged, dist, 5.0, bg[sl], bg_dist, cam_d[sl], tau)
+
+    three, two = blend(slice(0, 3), 1.8), blend(slice(0, 2), None)
+    torch.testing.assert_close(three.rgb, two.rgb)
+    torch.testing.assert_close(three.nerf_share[:2], two.nerf_share)
+    assert (three.nerf_share[2] == 0).all()
+    assert not torch.allclose(blend(slice(0, 3), None).rgb, two.rgb)
+
+
+def test_sample_distances_match_explicit_points():
+    g = torch.Generator().manual_seed(5)
+    o = torch.randn(4, 7, 3, generator=g, dtype=torch.float64)
+    d = torch.randn(4, 7, 3, generator=g, dtype=torch.float64)
+    ts = torch.rand(4, 7, 9, generator=g, dtype=torch.float64) * 10
+    origins = torch.randn(3, 3, generator=g, dtype=torch.float64)
+    points = o[..., None, :] + ts[..., None] * d[..., None, :]
+    explicit = torch.linalg.vector_norm(points[None] - origins[:, None, None, None, :], dim=-1)
+    torch.testing.assert_close(sample_distances(o, d, ts, origins), explicit)
+    # A ray through an origin: distance exactly |t - t0| there, no cancellation noise in float32.
+    o1, d1 = torch.tensor([[100.0, 0.0, 0.0]]), torch.tensor([[-1.0, 0.0, 0.0]])
+    near = sample_distances(o1, d1, torch.tensor([[100.0, 100.001]]), torch.zeros(1, 3))
+    torch.testing.assert_close(near, torch.tensor([[[0.0, 0.001]]]), atol=1e-5, rtol=0)
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # Baselines
 
@@ -311,6 +355,15 @@ def test_distance_test_switches_at_tau():
     torch.testing.assert_close(distance_ratio(d3), torch.tensor([2.0, 1.5]))
     assert distance_test(d3, 1.8).tolist() == [True, False]
     assert distance_test(torch.tensor([[2.0]]), 1.8).tolist() == [True]
+    # Who takes part: within tau times the nearest distance (the nearest always; ties at tau included).
+    assert distance_mask(d3, 1.8).tolist() == [[False, True], [False, False], [True, True]]
+    assert distance_mask(d3, 2.0).tolist() == [[False, True], [True, False], [True, True]]
+    assert distance_mask(d3, None).all()
+    assert distance_mask(torch.tensor([[0.0], [0.0], [1e-6]]), 100.0).tolist() == [[True], [True], [False]]
+    # Two NeRFs: the mask keeps both exactly where the paper's test blends.
+    dd = torch.rand(2, 100) + 0.01
+    for tau in (1.2, 1.8):
+        torch.testing.assert_close(distance_mask(dd, tau).all(0), ~distance_test(dd, tau))
     assert distance_test(torch.tensor([[1.0], [2.0]]), 2.0).tolist() == [
         False
     ]  # strictly greater than tau  # one NeRF: always nearest only
@@ -326,7 +379,9 @@ def test_nearest_and_idw_2d():
     torch.testing.assert_close(idw_2d(rgbs, d, 1.0), (w[:, None, None, None] * rgbs).sum(0) / 3.5)
     # Distance test: ratio 2 > 1.8 -> nearest only; < tau -> IDW.
     torch.testing.assert_close(idw_2d(rgbs, d, 1.0, tau=1.8), rgbs[1])
-    torch.testing.assert_close(idw_2d(rgbs, d, 1.0, tau=2.5), idw_2d(rgbs, d, 1.0))
+    torch.testing.assert_close(idw_2d(rgbs, d, 1.0, tau=4.5), idw_2d(rgbs, d, 1.0))
+    # N = 3, tau 2.5: NeRF 0 (4x the nearest's distance) is left out, NeRFs 1 and 2 blend among themselves.
+    torch.testing.assert_close(idw_2d(rgbs, d, 1.0, tau=2.5), (2 * rgbs[1] + rgbs[2]) / 3)
     # Per-camera distances over a batch of images.
     d_cam = torch.tensor([[2.0, 1.0], [1.0, 1.0], [4.0, 1.0]])
     rgbs_b = torch.rand(3, 2, 4, 5, 3)
@@ -369,6 +424,31 @@ def test_image_blend_weights_and_methods():
         image_blend_weights("idw-sample", d, 1.0)
     w = apply_distance_test(torch.full((2, 3), 0.5), torch.tensor([[1.0, 1.0, 3.0], [1.0, 3.0, 1.0]]), 2.0)
     torch.testing.assert_close(w, torch.tensor([[0.5, 1.0, 0.0], [0.5, 0.0, 1.0]]))
+    # Three NeRFs: the far one's weight goes to the others in proportion; none left -> the nearest.
+    w3 = torch.tensor([[0.2, 0.0], [0.2, 0.0], [0.6, 1.0]])
+    w3 = apply_distance_test(w3, torch.tensor([[1.0], [1.5], [9.0]]), 2.0)
+    torch.testing.assert_close(w3, torch.tensor([[0.5, 1.0], [0.5, 0.0], [0.0, 0.0]]))
+
+
+def test_idw_weights_mask():
+    d = torch.tensor([[1.0, 2.0, 0.0], [2.0, 1.0, 1.0], [0.5, 4.0, 0.0]])
+    keep = torch.tensor([[True, True, True], [True, True, True], [False, True, False]])
+    for gamma in (0.0, 1.0, 7.0, 1e30, math.inf):
+        w = idw_weights(d, gamma, keep)
+        torch.testing.assert_close(w.sum(0), torch.ones(3))
+        assert (w[~keep] == 0).all()
+        # Same as IDW over the NeRFs that take part alone.
+        torch.testing.assert_close(w[:2, 0], idw_weights(d[:2, 0:1], gamma)[:, 0])
+    torch.testing.assert_close(idw_weights(d, 1.0, keep)[:, 1], torch.tensor([2.0, 4.0, 1.0]) / 7)
+    torch.testing.assert_close(idw_weights(d, 0.0, keep)[:, 0], torch.tensor([0.5, 0.5, 0.0]))
+    # A NeRF left out at distance 0 takes nothing: the zero-distance rule applies among those taking part.
+    torch.testing.assert_close(idw_weights(d, 3.0, keep)[:, 2], torch.tensor([1.0, 0.0, 0.0]))
+    # A per-ray mask broadcasts over the samples of the ray.
+    ds = torch.rand(3, 5, 7) + 0.1
+    ray_keep = torch.tensor([[True] * 5, [True, False, True, False, True], [False] * 5])
+    w = idw_weights(ds, 4.0, ray_keep)
+    assert (w[2] == 0).all() and (w[1, 1] == 0).all()
+    torch.testing.assert_close(w[0, 1], torch.ones(7))
 
 
 # ---------------------------------------------------------------------------------------------------------------------
