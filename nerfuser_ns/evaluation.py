@@ -209,14 +209,15 @@ class RenderCost:
     num_rays: int
     """Rays per chunk (one forward pass)."""
     fused_s: float
-    """Seconds of one fused forward pass over the chunk, best of the repeats."""
+    """Median seconds of one fused forward pass over the chunk."""
     sub_s: list[float]
-    """Seconds of each sub-model's own forward pass over the chunk, mapped into its frame, best of the repeats."""
+    """Median seconds of each sub-model's own forward pass over the chunk, mapped into its frame."""
     ratio: float
-    """``fused_s / sum(sub_s)``. Best-of-N times: machine noise only ever adds time, so the fastest of interleaved
-    repeats is the stable estimate of each pass's own cost on a shared machine."""
-    ratio_median: float
-    """The same ratio from the median times (reported beside it: it moves with the load on the machine)."""
+    """Median over repeats of ``fused / sum(subs)`` within each repeat. Paired: the passes of one repeat run back to
+    back (in a shuffled order), so a slow spell of a shared machine slows both sides of one ratio alike; ratios of
+    separate medians or minima mix moments (and a sum of N minima is biased low)."""
+    ratio_quartiles: tuple[float, float]
+    """Lower and upper quartile of the per-repeat ratios: the measurement's spread."""
     fused_peak_mib: float
     """Peak resident memory added by one fused pass over the chunk (MiB, sampled in a pass after the timing)."""
     sub_peak_mib: list[float]
@@ -233,7 +234,7 @@ def measure_render_cost(
     transforms: Sequence[np.ndarray],
     cameras: Cameras,
     num_rays: int = 4096,
-    repeats: int = 9,
+    repeats: int = 15,
     method: str = "idw-sample",
     seed: int = 0,
     gamma: float = 5.0,
@@ -241,8 +242,9 @@ def measure_render_cost(
 ) -> RenderCost:
     """Times one chunk of ``num_rays`` random test rays through the fused model (``method``, no extra outputs) and
     through each sub-model's own forward pass (collider, sampler, field, renderers) on the same rays mapped into its
-    frame. Repeats are interleaved; the first (warm-up, compilation) pass is not counted; each pass's best time is
-    kept (its median too). Memory is measured in one more pass per path, after the timing."""
+    frame. Each repeat runs every pass once, in a shuffled order (seeded); the ratio is the median of the per-repeat
+    ratios. The first (warm-up, compilation) pass is not counted. Memory is measured in one more pass per path,
+    after the timing."""
     from nerfuser_ns.model import map_rays
 
     model = fused(models, transforms, blend_method=method, gamma=gamma, tau=tau, share_outputs=False)
@@ -255,25 +257,26 @@ def measure_render_cost(
     passes = [lambda: model(rays)] + [lambda r=r, m=m: m(r) for r, (_, m) in zip(mapped, models, strict=True)]
     times: list[list[float]] = [[] for _ in passes]
     peaks: list[float] = []
+    order_rng = np.random.default_rng(seed)
     with torch.no_grad():
         for p in passes:
             p()  # warm-up
         for _ in range(repeats):
-            for i, p in enumerate(passes):
+            for i in order_rng.permutation(len(passes)):
                 t = time.perf_counter()
-                p()
+                passes[i]()
                 times[i].append(time.perf_counter() - t)
         # memory after the timing: the sampler thread and the allocator setting it needs would slow the passes
         for p in passes:
             with _PeakRSS() as mem:
                 p()
             peaks.append(mem.added_mib)
-    best = [min(t) for t in times]
     med = [statistics.median(t) for t in times]
+    ratios = [f / sum(subs) for f, *subs in zip(*times, strict=True)]
+    q1, _, q3 = statistics.quantiles(ratios, n=4, method="inclusive") if len(ratios) > 1 else (ratios[0],) * 3
     return RenderCost(
-        num_rays=len(rays), fused_s=best[0], sub_s=best[1:], ratio=best[0] / sum(best[1:]),
-        ratio_median=med[0] / sum(med[1:]), fused_peak_mib=peaks[0], sub_peak_mib=peaks[1:], method=method,
-        repeats=repeats,
+        num_rays=len(rays), fused_s=med[0], sub_s=med[1:], ratio=statistics.median(ratios),
+        ratio_quartiles=(q1, q3), fused_peak_mib=peaks[0], sub_peak_mib=peaks[1:], method=method, repeats=repeats,
     )  # fmt: skip
 
 

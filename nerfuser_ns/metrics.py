@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
@@ -48,3 +48,22 @@ def image_metrics(
                 float(torch.stack([metric(p[None], t[None]) for p, t in zip(pred, target, strict=True)]).mean()), 5
             )
     return out
+
+
+def selection_score(errors: Float[Tensor, " num_nerfs *bs"], choice: Int[Tensor, " *bs"]) -> float:
+    """How well a per-pixel choice of NeRF picks the better rendering: ``1 - regret / worst regret``.
+
+    ``regret = sum (e_choice - e_best)`` over pixels, ``worst regret = sum (e_worst - e_best)``: 1 always picks the
+    lowest-error NeRF, 0 always the highest; for two NeRFs it is the share of pixels picked right, each pixel counted
+    by how much the choice matters there (a coin flip scores 0.5). NaN where no choice matters (all errors equal).
+
+    Args:
+        errors: per-NeRF error of each pixel (e.g. squared error, averaged over channels).
+        choice: the NeRF index a cue picks per pixel.
+    """
+    if choice.shape != errors.shape[1:]:
+        raise ValueError(f"choice {tuple(choice.shape)} does not match errors {tuple(errors.shape)} past the NeRF axis")
+    best, worst = errors.min(dim=0).values, errors.max(dim=0).values
+    picked = errors.gather(0, choice.unsqueeze(0).long())[0]
+    span = float((worst - best).sum())
+    return math.nan if span <= 0 else 1.0 - float((picked - best).sum()) / span

@@ -498,14 +498,16 @@ def markdown(report: dict) -> str:
             "",
             "Fused IDW-Sample render against the sub-models' own renders of the same rays (ground-truth T):",
             "",
-            "| scene | rays | fused (s) | sum of sub-models (s) | ratio (best of repeats) | ratio (medians) "
+            "| scene | rays | fused (s) | sum of sub-models (s) | ratio (median per repeat) | ratio quartiles "
             "| peak MiB fused / sub-models |",
             "| --- | --- | --- | --- | --- | --- | --- |",
         ]
         for s in c["render"]:
             lines.append(
                 f"| {s['scene']} | {s['num_rays']} | {s['fused_s']:.3f} | {sum(s['sub_s']):.3f} | "
-                f"{s['ratio']:.3f} | {_num(s.get('ratio_median'), 3)} | {s['fused_peak_mib']:.0f} / "
+                f"{s['ratio']:.3f} | "
+                + ("-" if "ratio_quartiles" not in s else "{:.3f}-{:.3f}".format(*s["ratio_quartiles"]))
+                + f" | {s['fused_peak_mib']:.0f} / "
                 + ", ".join(f"{v:.0f}" for v in s["sub_peak_mib"])
                 + " |"
             )
