@@ -247,6 +247,9 @@ def measure_render_cost(
     after the timing."""
     from nerfuser_ns.model import map_rays
 
+    # The allocator setting the memory sampler needs, from the start: every pass, timed or sampled, and every call
+    # in a process then runs under the same one (set lazily, the first call's memory hid in glibc's cache).
+    _return_freed_memory_to_os()
     model = fused(models, transforms, blend_method=method, gamma=gamma, tau=tau, share_outputs=False)
     bundle = cameras.generate_rays(torch.arange(len(cameras))[:, None], keep_shape=False)
     gen = torch.Generator().manual_seed(seed)
