@@ -269,7 +269,7 @@ def measure_render_cost(
                 t = time.perf_counter()
                 passes[i]()
                 times[i].append(time.perf_counter() - t)
-        # memory after the timing: the sampler thread and the allocator setting it needs would slow the passes
+        # memory after the timing: the sampler thread would slow the timed passes
         for p in passes:
             with _PeakRSS() as mem:
                 p()

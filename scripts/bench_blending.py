@@ -4,7 +4,7 @@ Per scene (its runs trained by ``scripts/build_demo.py``): the world-frame test 
 with every blend method in one pass (NeRF, Nearest, IDW-2D, IDW-3D, IDW-Sample) and scored against the ground truth
 (PSNR / SSIM / LPIPS when its weights are local), once with the ground-truth transforms and once with the estimated
 ones from a registration file when given. Then one chunk of test rays is timed through the fused IDW-Sample model
-and through each sub-model's own forward pass on the same rays (interleaved repeats, medians), with the peak
+and through each sub-model's own forward pass on the same rays (paired repeats, median ratio), with the peak
 resident memory each pass adds.
 
 gamma / tau default to the paper's per-layout values (object-centric: 5 / 1.8; street: 10 / 1.2).
