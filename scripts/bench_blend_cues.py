@@ -22,6 +22,7 @@ Example:
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import sys
@@ -45,8 +46,6 @@ class BenchBlendCuesConfig:
 
 
 def _psnr(err_mean: float) -> float:
-    import math
-
     return -10.0 * math.log10(max(err_mean, 1e-12))
 
 
@@ -90,7 +89,7 @@ def scene_cues(scene, max_test_views: int, description: str) -> dict:  # noqa: A
             views.append({
                 "view": v,
                 "nerfs": [int(i) for i in two],
-                "distance_ratio": float(cam_d[two[1]] / cam_d[two[0]]),
+                "distance_ratio": float(blending.distance_ratio(cam_d)),
                 "psnr_nerfs": [_psnr(float(e.mean())) for e in e2],
                 "psnr_oracle": _psnr(float(e2.min(0).values.mean())),
                 "psnr_camera": _psnr(float(e2[0].mean())),
