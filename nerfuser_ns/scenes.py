@@ -47,8 +47,8 @@ from torch import Tensor
 
 FORMAT_VERSION = 1
 _NO_BOTTOM = ("-y", "+x", "+y", "-x", "top")
-LayoutName = Literal["object-centric", "street"]
-LAYOUT_NAMES: tuple[str, ...] = ("object-centric", "street")
+LayoutName = Literal["object-centric", "street", "drive"]
+LAYOUT_NAMES: tuple[str, ...] = ("object-centric", "street", "drive")
 
 # Photographs stored inside the scikit-image package (checked to load with the network blocked, skimage 0.26).
 # Images that skimage fetches with pooch (e.g. "eagle", "kidney", "lily", "skin") are deliberately absent, and so
@@ -856,7 +856,7 @@ class LayoutParams:
     hfov_deg: float = 65.0
     """Horizontal field of view of every camera."""
     num_captures: int = 3
-    """Number of training captures (street only; object-centric always has 2)."""
+    """Number of training captures (street and drive; object-centric always has 2)."""
     texels_per_metre: float = 128.0
     """Texture resolution (capped at 2048 texels per surface side)."""
 
@@ -996,19 +996,15 @@ def make_object_centric(params: LayoutParams) -> SceneLayout:
     return SceneLayout("object-centric", params.seed, asdict(params), scene, captures, test)
 
 
-def make_street(params: LayoutParams) -> SceneLayout:
-    """A straight street along +x lined by textured buildings on both sides, with posts and kiosks on the pavement.
+def _street_world(params: LayoutParams, x_caps: np.ndarray) -> tuple[Scene, float]:
+    """The street scene shared by the street and drive layouts: road along +x, buildings and furniture both sides.
 
-    Capture k covers the segment centred at x_k = (k - (N - 1) / 2) * 7 m: cameras at 1.4-2.2 m height within
-    +-3.5 m of x_k, looking at the facades or along the street; neighbouring segments overlap by their views. Test
-    views stand between consecutive capture centres.
+    Returns the scene and the half width of the road (facades start there). Draws from the geometry and texture
+    streams only, so the cameras of either layout do not change the world.
     """
-    params.validate()
     geo = _rng(params.seed, 0)
     b = SceneBuilder(_rng(params.seed, 1), texels_per_metre=min(params.texels_per_metre, 48.0))
-    spacing, half_road = 7.0, 4.0
-    n = params.num_captures
-    x_caps = (np.arange(n) - (n - 1) / 2) * spacing
+    half_road = 4.0
     x_lo, x_hi = x_caps[0] - 12.0, x_caps[-1] + 12.0
     # Far backdrop (coarse texture: only seen far away) with its floor a hair below the finely textured road.
     enclosure = (x_hi - x_lo + 30.0, 44.0, 24.0)
@@ -1035,7 +1031,21 @@ def make_street(params: LayoutParams) -> SceneLayout:
             else:
                 b.add_box("street_furniture", (xp, side * (half_road - 0.9), 0.6), (1.4, 0.9, 1.2), faces=_NO_BOTTOM,
                           patch_size_m=(0.15, 0.5), patches_per_m2=10)
-    scene = b.build()
+    return b.build(), half_road
+
+
+def make_street(params: LayoutParams) -> SceneLayout:
+    """A straight street along +x lined by textured buildings on both sides, with posts and kiosks on the pavement.
+
+    Capture k covers the segment centred at x_k = (k - (N - 1) / 2) * 7 m: cameras at 1.4-2.2 m height within
+    +-3.5 m of x_k, looking at the facades or along the street; neighbouring segments overlap by their views. Test
+    views stand between consecutive capture centres.
+    """
+    params.validate()
+    spacing = 7.0
+    n = params.num_captures
+    x_caps = (np.arange(n) - (n - 1) / 2) * spacing
+    scene, half_road = _street_world(params, x_caps)
 
     intr = Intrinsics.from_fov(params.width, params.height, params.hfov_deg)
     cams_rng = _rng(params.seed, 2)
@@ -1068,14 +1078,96 @@ def make_street(params: LayoutParams) -> SceneLayout:
     return SceneLayout("street", params.seed, asdict(params), scene, captures, test)
 
 
+DRIVE_RIG_CAMERAS = 8
+"""Cameras of the drive layout's roof rig, one every 45 deg of yaw (with the default 65 deg field of view
+neighbours overlap), like Mission Bay's surround rig of 12."""
+DRIVE_STEP_M = 0.5
+"""Distance the drive layout's car moves between two rig exposures."""
+
+
+def make_drive(params: LayoutParams) -> SceneLayout:
+    """The street of :func:`make_street` captured the way the paper's Mission Bay data is: from a car.
+
+    A roof rig of :data:`DRIVE_RIG_CAMERAS` level cameras looking all around (1.9 m up, in the lane at y = -1.2 m)
+    fires every :data:`DRIVE_STEP_M` while the car drives along +x. As in the paper's split of Mission Bay (of every
+    30 frames the first 25 train a block, the next 5 are held out), each capture is a block of ``num_views / rig``
+    consecutive stops, the next ``stops / 5`` stops are left out, and the test views are the rig's side cameras
+    (looking at the left or right facades) at those left-out stops, between every two neighbouring blocks.
+    """
+    params.validate()
+    rig = DRIVE_RIG_CAMERAS
+    if params.num_views % rig:
+        raise ValueError(f"num_views must be a multiple of {rig} for the drive layout (one exposure of the "
+                         f"{rig}-camera rig per stop), got {params.num_views}")
+    stops = params.num_views // rig
+    gap = max(1, round(stops / 5))
+    n = params.num_captures
+    period = (stops + gap) * DRIVE_STEP_M
+    x_caps = (np.arange(n) - (n - 1) / 2) * period
+    scene, _ = _street_world(params, x_caps)
+
+    intr = Intrinsics.from_fov(params.width, params.height, params.hfov_deg)
+    cams_rng = _rng(params.seed, 2)
+    lane_y, rig_z, pitch = -1.2, 1.9, math.radians(4.0)
+
+    def rig_poses(xs: np.ndarray, yaw_offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Camera centres and viewing targets, stop-major, of one exposure per stop (``yaw_offsets``: the cameras'
+        yaws relative to the car, [cameras] or [stops, cameras]), with odometry-like jitter of the car."""
+        pos = np.stack([xs + cams_rng.normal(0, 0.03, len(xs)), lane_y + cams_rng.normal(0, 0.05, len(xs)),
+                        rig_z + cams_rng.normal(0, 0.02, len(xs))], axis=-1)
+        heading = cams_rng.normal(0, math.radians(1.5), len(xs))
+        yaw = heading[:, None] + np.broadcast_to(yaw_offsets, (len(xs), np.shape(yaw_offsets)[-1]))
+        d = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.full_like(yaw, np.sin(pitch))], -1)
+        pos = np.broadcast_to(pos[:, None], d.shape)
+        return pos.reshape(-1, 3), (pos + d).reshape(-1, 3)
+
+    def fixed(positions: np.ndarray, targets: np.ndarray):
+        return lambda i, attempt: (positions[i], targets[i])
+
+    surround = 2 * math.pi * np.arange(rig) / rig
+    captures, last_stops = [], []
+    for k, xc in enumerate(x_caps):
+        xs = xc + (np.arange(stops) - (stops - 1) / 2) * DRIVE_STEP_M
+        last_stops.append(xs[-1])
+        pos, tgt = rig_poses(xs, surround)
+        c2w = _sample_cameras(scene, "world", params.num_views, fixed(pos, tgt))
+        captures.append(_capture_from_world(f"capture_{k}", c2w, intr, cams_rng, f"drive block x={xc:+.1f} m"))
+
+    # Test stops spread over the left-out stops of every gap; the side camera alternates left / right.
+    i = np.arange(params.num_test_views)
+    g, j = i % (n - 1), i // (n - 1)
+    per_gap = math.ceil(params.num_test_views / (n - 1))
+    first = np.array(last_stops[:-1])[g] + DRIVE_STEP_M
+    xs = first + (gap - 1) * DRIVE_STEP_M * (j + 0.5) / per_gap
+    side = np.where(j % 2 == 0, math.pi / 2, -math.pi / 2)
+    pos, tgt = rig_poses(xs, side[:, None])
+    test_c2w = _sample_cameras(scene, "world", params.num_test_views, fixed(pos, tgt))
+    test = Capture("test", test_c2w, intr, np.eye(4), focus="side cameras between neighbouring blocks")
+    return SceneLayout("drive", params.seed, asdict(params), scene, captures, test)
+
+
 LAYOUTS: dict[str, Callable[[LayoutParams], SceneLayout]] = {
     "object-centric": make_object_centric,
     "street": make_street,
+    "drive": make_drive,
 }
 
 
+def benchmark_params(layout: str, seed: int) -> dict:
+    """The layout parameters our benchmarks' scenes use (``build_demo.py``, ``evaluate.py``): 192 x 144 images, 64
+    views per capture and 12 test views; three captures on a street; the drive's 12 rig stops per block (96 views)
+    and 24 test views, 12 per gap."""
+    params = dict(seed=seed, num_views=64, num_test_views=12, width=192, height=144)
+    if layout in ("street", "drive"):
+        params["num_captures"] = 3
+    if layout == "drive":
+        params.update(num_views=12 * DRIVE_RIG_CAMERAS, num_test_views=24)
+    return params
+
+
 def make_layout(layout: str, **params) -> SceneLayout:
-    """Builds a layout by name (``"object-centric"`` or ``"street"``); keyword arguments are :class:`LayoutParams`."""
+    """Builds a layout by name (``"object-centric"``, ``"street"`` or ``"drive"``); keyword arguments are
+    :class:`LayoutParams`."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
     unknown = set(params) - set(LayoutParams.__dataclass_fields__)

@@ -7,7 +7,8 @@ ones from a registration file when given. Then one chunk of test rays is timed t
 and through each sub-model's own forward pass on the same rays (paired repeats, median ratio), with the peak
 resident memory each pass adds.
 
-gamma / tau default to the paper's per-layout values (object-centric: 5 / 1.8; street: 10 / 1.2).
+gamma / tau default to the paper's per-layout values (object-centric: 5 / 1.8; street and drive: Mission Bay's
+10 / 1.2).
 
 Example (after scripts/bench_registration.py wrote the registration files):
     python scripts/bench_blending.py \\
@@ -28,7 +29,7 @@ from pathlib import Path
 
 import tyro
 
-PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2)}
+PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2), "drive": (10.0, 1.2)}
 """(gamma, tau) the paper uses per scene type."""
 
 

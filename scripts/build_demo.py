@@ -34,10 +34,10 @@ class BuildDemoConfig:
     """Where the generated ground-truth scene goes (not shipped: it regenerates in under a minute)."""
     runs_dir: Path = Path("demo/runs")
     """Where the trained runs go (shipped with the repo)."""
-    layout: Literal["object-centric", "street"] = "object-centric"
-    """Scene layout (the demo is object-centric; benchmarks also build street scenes)."""
+    layout: Literal["object-centric", "street", "drive"] = "object-centric"
+    """Scene layout (the demo is object-centric; benchmarks also build street and drive scenes)."""
     num_captures: int = 3
-    """Training captures of a street scene."""
+    """Training captures of a street or drive scene."""
     seed: int = 0
     """Scene seed (the layout, textures and cameras)."""
     train_seed: int = 42
@@ -58,12 +58,12 @@ class BuildDemoConfig:
 def main(cfg: BuildDemoConfig) -> None:
     from rich.console import Console
 
-    from nerfuser_ns.scenes import generate_scene
+    from nerfuser_ns.scenes import benchmark_params, generate_scene
 
     console = Console()
     t0 = time.perf_counter()
-    params = dict(seed=cfg.seed, num_views=64, num_test_views=12, width=192, height=144)
-    if cfg.layout == "street":
+    params = benchmark_params(cfg.layout, cfg.seed)
+    if "num_captures" in params:
         params["num_captures"] = cfg.num_captures
     layout = generate_scene(cfg.scene_dir, cfg.layout, supersample=2, **params)
     console.print(f"scene: {cfg.scene_dir} ({time.perf_counter() - t0:.1f} s)")

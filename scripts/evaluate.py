@@ -39,7 +39,7 @@ import tyro
 from nerfuser_ns.files import atomic_path, write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
-PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2)}
+PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2), "drive": (10.0, 1.2)}
 """(gamma, tau) the paper uses per scene type."""
 
 
@@ -186,9 +186,7 @@ def build_scenes(cfg: EvaluateConfig, console) -> list[Scene]:  # noqa: ANN001
             )
         scene_dir, runs_dir = dirs.get(name, (cfg.scenes_root / name, cfg.runs_root / name))
         # as scripts/build_demo.py builds them (the shipped demo runs were trained on exactly this scene)
-        params = dict(seed=int(seed), num_views=64, num_test_views=12, width=192, height=144)
-        if layout == "street":
-            params["num_captures"] = 3
+        params = scenes.benchmark_params(layout, int(seed))
         console.print(f"[bold]{name}[/]: scene {scene_dir} ({layout}, seed {seed})")
         layout_obj = scenes.generate_scene(scene_dir, layout, supersample=2, **params)
         captures = [c.name for c in layout_obj.captures]

@@ -20,19 +20,21 @@ import tyro
 class MakeSceneConfig:
     """Render a ground-truth scene: one nerfstudio dataset per capture (own frame), a world-frame test capture."""
 
-    layout: Literal["object-centric", "street"] = "object-centric"
-    """Scene layout: an indoor room with two objects and one capture around each, or a street with several
-    overlapping captures along it."""
+    layout: Literal["object-centric", "street", "drive"] = "object-centric"
+    """Scene layout: an indoor room with two objects and one capture around each; a street with several
+    overlapping captures along it; or the same street driven through by a car with a surround camera rig, one
+    capture per block of the drive and side-view test cameras between blocks (like the paper's Mission Bay split).
+    """
     output_dir: Path = Path("data/scenes/object-centric")
     """Scene folder to create (replaced atomically if it already holds a generated scene)."""
     seed: int = 0
     """Random seed for geometry jitter, textures, camera placement and capture-frame yaws."""
     num_views: int = 64
-    """Views per training capture."""
+    """Views per training capture (drive: a multiple of 8, the rig's cameras)."""
     num_test_views: int = 12
     """Views of the world-frame test capture."""
     num_captures: int = 3
-    """Number of training captures (street layout only; object-centric always has two)."""
+    """Number of training captures (street and drive layouts; object-centric always has two)."""
     width: int = 192
     """Image width in pixels."""
     height: int = 144
@@ -40,7 +42,7 @@ class MakeSceneConfig:
     hfov_deg: float = 65.0
     """Horizontal field of view in degrees."""
     texels_per_metre: float = 128.0
-    """Texture resolution in texels per metre (the street layout caps it at 48)."""
+    """Texture resolution in texels per metre (the street and drive layouts cap it at 48)."""
     supersample: int = 2
     """Anti-aliasing: rays per pixel along each axis (2 means 2x2)."""
     threads: int = 1

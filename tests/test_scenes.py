@@ -33,6 +33,11 @@ def street() -> S.SceneLayout:
     return S.make_layout("street", seed=0, num_views=8, num_test_views=2, width=32, height=24, texels_per_metre=8.0)
 
 
+@pytest.fixture(scope="module")
+def drive() -> S.SceneLayout:
+    return S.make_layout("drive", seed=0, num_views=32, num_test_views=6, width=32, height=24, texels_per_metre=8.0)
+
+
 def _file_digests(folder: Path) -> dict:
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(folder.rglob("*")) if p.is_file()}
@@ -216,6 +221,47 @@ def test_street_neighbouring_captures_overlap(street: S.SceneLayout):
     assert ((tx > min(xs)) & (tx < max(xs))).all()
 
 
+def test_drive_is_a_surround_rig_along_the_lane(drive: S.SceneLayout):
+    rig = S.DRIVE_RIG_CAMERAS
+    for cap in drive.captures:
+        centres = cap.c2w_world[:, :3, 3].reshape(-1, rig, 3)  # stop-major: one exposure of the rig per stop
+        assert np.allclose(centres, centres[:, :1])  # the rig's cameras share the car's position
+        assert np.all(np.abs(centres[..., 1] + 1.2) < 0.3) and np.all(np.abs(centres[..., 2] - 1.9) < 0.1)
+        assert np.all(np.diff(centres[:, 0, 0]) > 0.3)  # driving along +x, about one step per stop
+        forward = -cap.c2w_world[:, :3, 2].reshape(-1, rig, 3)
+        yaw = np.arctan2(forward[..., 1], forward[..., 0])
+        turn = np.exp(1j * (yaw - yaw[:, :1]))  # relative yaw as a unit complex number: no wrap-around at pi
+        expected = np.exp(1j * 2 * np.pi * np.arange(rig) / rig)
+        assert np.allclose(turn, expected, atol=1e-6)  # looking all around, one camera every 360 / rig deg
+        assert np.all(np.abs(forward[..., 2]) < 0.2)  # level cameras
+
+
+def test_drive_test_views_are_side_cameras_between_blocks(drive: S.SceneLayout):
+    blocks = [(cap.c2w_world[:, 0, 3].min(), cap.c2w_world[:, 0, 3].max()) for cap in drive.captures]
+    for (_, hi), (lo, _) in zip(blocks[:-1], blocks[1:], strict=True):
+        assert lo - hi > S.DRIVE_STEP_M  # a left-out stop between neighbouring blocks
+    tx = drive.test.c2w_world[:, 0, 3]
+    in_gap = np.zeros(len(tx), dtype=bool)
+    for (_, hi), (lo, _) in zip(blocks[:-1], blocks[1:], strict=True):
+        in_gap |= (tx > hi + 0.2) & (tx < lo - 0.2)
+        assert ((tx > hi) & (tx < lo)).sum() == len(tx) // (len(blocks) - 1)  # every gap gets its share
+    assert in_gap.all()
+    forward = -drive.test.c2w_world[:, :3, 2]
+    assert np.all(np.abs(forward[:, 1]) > 0.95)  # side view
+    assert (forward[:, 1] > 0).any() and (forward[:, 1] < 0).any()  # both sides
+    # Neighbouring blocks see common ground: what one sees, the other sees too.
+    for a, b in zip(drive.captures[:-1], drive.captures[1:], strict=True):
+        seen = S.visibility(drive.scene, _surface_points(drive, a, stride=6), b.c2w_world, b.intrinsics)
+        assert seen.any(dim=1).float().mean() > 0.2
+
+
+def test_drive_shares_the_street(street: S.SceneLayout):
+    # 12 stops per block and 2 left out: blocks 7 m apart, the street's capture spacing, so the same world.
+    drive = S.make_layout("drive", seed=0, num_views=96, num_test_views=2, width=32, height=24, texels_per_metre=8.0)
+    assert drive.scene.part_bounds == street.scene.part_bounds
+    assert np.allclose(drive.test.c2w_world[:, 0, 3], [-3.5, 3.5], atol=0.4)  # between the 7 m apart blocks
+
+
 def test_visibility_detects_occlusion(room: S.SceneLayout):
     cap = room.test
     lo, hi = (np.asarray(v) for v in room.scene.object_bounds["object2"])
@@ -226,8 +272,8 @@ def test_visibility_detects_occlusion(room: S.SceneLayout):
     assert vis[1:].any(dim=1).all()
 
 
-def test_images_are_textured(room: S.SceneLayout, street: S.SceneLayout):
-    for lay in (room, street):
+def test_images_are_textured(room: S.SceneLayout, street: S.SceneLayout, drive: S.SceneLayout):
+    for lay in (room, street, drive):
         for cap in lay.captures + [lay.test]:
             for c2w in cap.c2w_world[:3]:
                 out = S.render_camera(lay.scene, c2w, cap.intrinsics)
@@ -254,6 +300,7 @@ def test_images_are_textured(room: S.SceneLayout, street: S.SceneLayout):
         (dict(seed=-1), "seed"),
         (dict(hfov_deg=500.0), "hfov"),
         (dict(layout="street", num_captures=1), "num_captures"),
+        (dict(layout="drive", num_views=12), "multiple of 8"),
         (dict(colour="red"), "unknown layout parameters"),
     ],
 )
