@@ -256,8 +256,10 @@ def test_drive_test_views_are_side_cameras_between_blocks(drive: S.SceneLayout):
 
 
 def test_drive_shares_the_street(street: S.SceneLayout):
-    # 12 stops per block and 2 left out: blocks 7 m apart, the street's capture spacing, so the same world.
-    drive = S.make_layout("drive", seed=0, num_views=96, num_test_views=2, width=32, height=24, texels_per_metre=8.0)
+    # The benchmark's drive: 12 stops per block and 2 left out, so blocks 7 m apart as the street's captures are.
+    params = S.benchmark_params("drive", 0) | dict(num_test_views=2, width=32, height=24, texels_per_metre=8.0)
+    assert params["num_views"] == 12 * S.DRIVE_RIG_CAMERAS and params["num_captures"] == 3
+    drive = S.make_layout("drive", **params)
     assert drive.scene.part_bounds == street.scene.part_bounds
     assert np.allclose(drive.test.c2w_world[:, 0, 3], [-3.5, 3.5], atol=0.4)  # between the 7 m apart blocks
 
