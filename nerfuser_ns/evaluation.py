@@ -157,13 +157,15 @@ def blend_metrics(
 
 def _return_freed_memory_to_os() -> None:
     """glibc keeps freed blocks (its mmap threshold grows with use), hiding later allocations from the resident size;
-    a fixed 64 KiB threshold makes every large tensor its own mapping, returned on free, so RSS follows live memory."""
+    a fixed 64 KiB threshold makes every large tensor its own mapping, returned on free, and ``malloc_trim`` hands
+    back the free pages inside the heap (what earlier work left there), so RSS follows live memory."""
     import ctypes
 
     try:
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(-3, 1 << 16)  # M_MMAP_THRESHOLD
         libc.mallopt(-1, 1 << 16)  # M_TRIM_THRESHOLD
+        libc.malloc_trim(0)
     except (OSError, AttributeError):
         pass  # not glibc: peaks then only show growth beyond the allocator's cache
 

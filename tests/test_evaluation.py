@@ -110,6 +110,18 @@ def test_measure_render_cost(tiny, models):
     assert cost.fused_peak_mib >= 0 and set(cost.as_dict()) >= {"ratio", "fused_s", "sub_s", "fused_peak_mib"}
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator (the memory sampler's setting)")
+def test_peak_memory_sees_reused_heap():
+    # Free space inside the heap (what earlier rendering leaves behind) must not hide new allocations from RSS.
+    blocks = [np.ones(4096) for _ in range(3200)]  # 100 MiB in 32 KiB blocks, below the mmap threshold
+    top = np.ones(4096)  # keeps the freed blocks below the top of the heap, out of reach of the automatic trim
+    del blocks
+    with evaluation._PeakRSS() as mem:
+        again = [np.ones(4096) for _ in range(1600)]  # 50 MiB
+    assert 40 < mem.added_mib < 80, mem.added_mib
+    del again, top
+
+
 def test_geometric_gammas():
     g = evaluation.geometric_gammas(1e-2, 1e3, 6)
     assert g[0] == pytest.approx(1e-2) and g[-1] == pytest.approx(1e3)
