@@ -28,6 +28,9 @@ from nerfuser_ns import metrics, runs, sim3
 BLEND_METHODS = ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
 """Every blend method, in the paper's table order."""
 
+PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2), "drive": (10.0, 1.2)}
+"""(gamma, tau) the paper uses per scene layout: its object-centric scenes, and Mission Bay for the streets."""
+
 RUN_SUBDIR = Path("nerfacto-cpu/demo")
 """Where ``scripts/build_demo.py`` puts a capture's run below ``<runs dir>/<capture>/``."""
 
@@ -293,6 +296,7 @@ def geometric_gammas(low: float = 1e-2, high: float = 1e3, num: int = 11) -> lis
 __all__ = [
     "BLEND_METHODS",
     "EvaluationError",
+    "PAPER_SETTINGS",
     "RenderCost",
     "SceneRuns",
     "blend_metrics",

@@ -29,9 +29,6 @@ from pathlib import Path
 
 import tyro
 
-PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2), "drive": (10.0, 1.2)}
-"""(gamma, tau) the paper uses per scene type."""
-
 
 @dataclass
 class BenchBlendingConfig:
@@ -142,7 +139,7 @@ def main(cfg: BenchBlendingConfig) -> None:
     }
     for scene in scenes:
         layout = scene.ground_truth["layout"]
-        gamma, tau = PAPER_SETTINGS.get(layout, (5.0, 1.8))
+        gamma, tau = evaluation.PAPER_SETTINGS.get(layout, (5.0, 1.8))
         gamma = cfg.gamma if cfg.gamma is not None else gamma
         tau = cfg.tau if cfg.tau is not None else tau
         console.rule(f"{scene.name} ({layout}, gamma {gamma}, tau {tau})")

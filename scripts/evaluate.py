@@ -39,8 +39,6 @@ import tyro
 from nerfuser_ns.files import atomic_path, write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
-PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2), "drive": (10.0, 1.2)}
-"""(gamma, tau) the paper uses per scene type."""
 
 
 @dataclass
@@ -169,7 +167,7 @@ def _f(x) -> float:  # noqa: ANN001
 
 def build_scenes(cfg: EvaluateConfig, console) -> list[Scene]:  # noqa: ANN001
     from nerfuser_ns import scenes, training
-    from nerfuser_ns.evaluation import SceneRuns
+    from nerfuser_ns.evaluation import PAPER_SETTINGS, SceneRuns
 
     dirs = {}
     for spec in cfg.dirs:
@@ -642,7 +640,7 @@ def main(cfg: EvaluateConfig) -> None:  # noqa: C901 - a linear sequence of repo
     console.rule("2. blending / 3. gamma ablation / 5. render cost")
     report["blending"], report["gamma"], render_cost = [], [], []
     for s in scenes:
-        gamma, tau = PAPER_SETTINGS[s.layout]
+        gamma, tau = evaluation.PAPER_SETTINGS[s.layout]
         models = [(c, runs.load_run(p).model) for c, p in zip(s.runs.captures, s.runs.configs, strict=True)]
         cams, target = s.runs.test_views(max_views=cfg.test_views)
         transforms = {"ground-truth": s.runs.nerf_to_common()}
