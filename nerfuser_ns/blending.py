@@ -488,8 +488,8 @@ def idw_sample_blend(
     paper's formula as printed, renormalising the merged samples alone to 1 (as if every ray were fully absorbed).
 
     Degenerate rays: where the blended mass is 0 (all of it sits in samples whose IDW weights underflowed to 0,
-    possible for huge gamma), the plain mean over NeRFs (gamma = 0) is used instead; where that is 0 too (no mass at
-    all, only without background), everything is 0.
+    possible for huge gamma), the plain mean over the NeRFs passing the distance test (gamma = 0) is used instead;
+    where that is 0 too (no mass at all, only without background), everything is 0.
 
     Args:
         merged: output of ``merge_samples``.
@@ -515,8 +515,9 @@ def idw_sample_blend(
     w = idw_weights(distances, gamma, mask)  # normalisation (1), over the NeRFs that pass the distance test
     q = w * p
     total = q.sum(dim=(0, -1))
-    # Fallback for rays whose IDW-weighted mass vanished: the plain mean over NeRFs.
-    q_mean = p / p.shape[0]
+    # Fallback for rays whose IDW-weighted mass vanished: the plain mean over the NeRFs taking part.
+    keep = torch.ones_like(p[:, ..., 0], dtype=p.dtype) if mask is None else _pad_right(mask, p.ndim - 1).to(p.dtype)
+    q_mean = p * (keep / keep.sum(dim=0, keepdim=True)).unsqueeze(-1)
     total_mean = q_mean.sum(dim=(0, -1))
     ok = (total > 0).unsqueeze(0).unsqueeze(-1)
     q = torch.where(ok, q, q_mean)

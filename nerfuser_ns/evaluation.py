@@ -229,6 +229,14 @@ class RenderCost:
     """Peak resident memory added by each sub-model's own pass (MiB, sampled)."""
     method: str
     repeats: int
+    used_rays: list[int]
+    """Rays of the chunk the fused model queries each sub-model on (the others fail every distance test there)."""
+    sub_used_s: list[float]
+    """Median seconds of each sub-model's own pass over just those rays (0 for none)."""
+    ratio_used: float
+    """Median over repeats of ``fused / sum(sub_used)``: the fused model's overhead over the sub-model work it does
+    (``ratio`` credits it with skipping the NeRFs the distance test leaves out)."""
+    ratio_used_quartiles: tuple[float, float]
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -247,9 +255,9 @@ def measure_render_cost(
 ) -> RenderCost:
     """Times one chunk of ``num_rays`` random test rays through the fused model (``method``, no extra outputs) and
     through each sub-model's own forward pass (collider, sampler, field, renderers) on the same rays mapped into its
-    frame. Each repeat runs every pass once, in a shuffled order (seeded); the ratio is the median of the per-repeat
-    ratios. The first (warm-up, compilation) pass is not counted. Memory is measured in one more pass per path,
-    after the timing."""
+    frame, and through each sub-model on just the rays the fused model queries it on. Each repeat runs every pass
+    once, in a shuffled order (seeded); the ratios are medians of the per-repeat ratios. The first (warm-up,
+    compilation) pass is not counted. Memory is measured in one more pass per full-chunk path, after the timing."""
     from nerfuser_ns.model import map_rays
 
     # The allocator setting the memory sampler needs, from the start: every pass, timed or sampled, and every call
@@ -261,8 +269,12 @@ def measure_render_cost(
     pick = torch.randperm(len(bundle), generator=gen)[:num_rays]
     rays = bundle[pick]
     mapped = [map_rays(rays, model.common_to_nerf[i], m.num_train_data)[0] for i, (_, m) in enumerate(models)]
+    used = model.used_nerfs(rays)
+    used_mapped = [r[u] if bool(u.any()) else None for r, u in zip(mapped, used, strict=True)]
 
+    n = len(models)
     passes = [lambda: model(rays)] + [lambda r=r, m=m: m(r) for r, (_, m) in zip(mapped, models, strict=True)]
+    passes += [lambda r=r, m=m: None if r is None else m(r) for r, (_, m) in zip(used_mapped, models, strict=True)]
     times: list[list[float]] = [[] for _ in passes]
     peaks: list[float] = []
     order_rng = np.random.default_rng(seed)
@@ -275,16 +287,24 @@ def measure_render_cost(
                 passes[i]()
                 times[i].append(time.perf_counter() - t)
         # memory after the timing: the sampler thread would slow the timed passes
-        for p in passes:
+        for p in passes[: n + 1]:
             with _PeakRSS() as mem:
                 p()
             peaks.append(mem.added_mib)
     med = [statistics.median(t) for t in times]
-    ratios = [f / sum(subs) for f, *subs in zip(*times, strict=True)]
-    q1, _, q3 = statistics.quantiles(ratios, n=4, method="inclusive") if len(ratios) > 1 else (ratios[0],) * 3
+    fused_t, sub_t, used_t = times[0], times[1 : n + 1], times[n + 1 :]
+    ratios = [f / sum(subs) for f, *subs in zip(fused_t, *sub_t, strict=True)]
+    ratios_used = [f / sum(subs) for f, *subs in zip(fused_t, *used_t, strict=True)]
+
+    def quartiles(x: list[float]) -> tuple[float, float]:
+        q1, _, q3 = statistics.quantiles(x, n=4, method="inclusive") if len(x) > 1 else (x[0],) * 3
+        return q1, q3
+
     return RenderCost(
-        num_rays=len(rays), fused_s=med[0], sub_s=med[1:], ratio=statistics.median(ratios),
-        ratio_quartiles=(q1, q3), fused_peak_mib=peaks[0], sub_peak_mib=peaks[1:], method=method, repeats=repeats,
+        num_rays=len(rays), fused_s=med[0], sub_s=med[1 : n + 1], ratio=statistics.median(ratios),
+        ratio_quartiles=quartiles(ratios), fused_peak_mib=peaks[0], sub_peak_mib=peaks[1:], method=method,
+        repeats=repeats, used_rays=[int(u.sum()) for u in used], sub_used_s=med[n + 1 :],
+        ratio_used=statistics.median(ratios_used), ratio_used_quartiles=quartiles(ratios_used),
     )  # fmt: skip
 
 

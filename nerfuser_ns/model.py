@@ -21,6 +21,7 @@ The blend method, gamma and tau can be changed at render time: set :attr:`Nerfus
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -29,7 +30,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float, Int
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.models.base_model import Model, ModelConfig
@@ -76,6 +77,18 @@ class NerfSamples:
     rgbs: Float[Tensor, "num_rays num_samples 3"]
     background_rgb: Float[Tensor, "num_rays 3"]
     """The colour its own renderer puts behind the samples (nerfacto "last_sample": the last sample's colour)."""
+
+
+@dataclass
+class QueriedSamples:
+    """One NeRF's samples for some or all rays of a batch, as the fused model queried them."""
+
+    samples: NerfSamples
+    """The samples, one row per queried ray."""
+    scale: Float[Tensor, "num_queried 1"]
+    """``k`` with ``t_nerf = k * t_common``, per queried ray."""
+    rows: Int[Tensor, " num_queried"] | None = None
+    """The batch rays queried, in order; None: all of them."""
 
 
 class NerfAdapter:
@@ -417,36 +430,79 @@ class NerfuserModel(Model):
         return {"psnr": self.psnr(outputs["rgb"], gt)}
 
     @torch.no_grad()
-    def nerf_samples(self, ray_bundle: RayBundle) -> list[tuple[NerfSamples, Tensor]]:
-        """Every NeRF's samples for the common-frame rays, with ``k`` (``t_nerf = k * t_common``) per ray."""
-        out = []
+    def nerf_samples(
+        self, ray_bundle: RayBundle, used: Bool[Tensor, "num_nerfs num_rays"] | None = None
+    ) -> list[QueriedSamples | None]:
+        """Every NeRF's samples for the (flat) common-frame rays.
+
+        ``used`` (e.g. :meth:`used_nerfs`) limits each NeRF to the rays it is used on: a NeRF used on none is not
+        queried at all (None), one used on some rays only on those. None queries every NeRF on every ray.
+        """
+        out: list[QueriedSamples | None] = []
         for i, adapter in enumerate(self.adapters):
+            rows, rays = None, ray_bundle
+            if used is not None:
+                if not bool(used[i].any()):
+                    out.append(None)
+                    continue
+                if not bool(used[i].all()):
+                    rows = used[i].nonzero()[:, 0]
+                    rays = ray_bundle[rows]
             if self._identity[i]:  # exactly the rays the NeRF would see itself, no float round trip
                 bundle = RayBundle(
-                    origins=ray_bundle.origins,
-                    directions=ray_bundle.directions,
-                    pixel_area=ray_bundle.pixel_area,
-                    camera_indices=_camera_indices(ray_bundle, adapter.model.num_train_data),
-                    nears=ray_bundle.nears,
-                    fars=ray_bundle.fars,
-                    metadata=dict(ray_bundle.metadata),
-                    times=ray_bundle.times,
+                    origins=rays.origins,
+                    directions=rays.directions,
+                    pixel_area=rays.pixel_area,
+                    camera_indices=_camera_indices(rays, adapter.model.num_train_data),
+                    nears=rays.nears,
+                    fars=rays.fars,
+                    metadata=dict(rays.metadata),
+                    times=rays.times,
                 )
-                k = torch.ones_like(ray_bundle.origins[..., :1])
+                k = torch.ones_like(rays.origins[..., :1])
             else:
-                bundle, k = map_rays(ray_bundle, self.common_to_nerf[i], adapter.model.num_train_data)
+                bundle, k = map_rays(rays, self.common_to_nerf[i], adapter.model.num_train_data)
             bundle = adapter.collide(bundle)
-            out.append((adapter.samples(bundle), k))
+            out.append(QueriedSamples(adapter.samples(bundle), k, rows))
         return out
+
+    def _methods(self) -> list[str]:
+        methods = list(BLEND_METHODS) if self.config.render_all_methods else [self.blend_method]
+        if self.blend_method not in methods:
+            methods.append(self.blend_method)
+        return methods
+
+    def _usage(
+        self, camera_d: Float[Tensor, "num_nerfs num_rays"]
+    ) -> tuple[Bool[Tensor, "num_nerfs num_rays"], Bool[Tensor, "num_nerfs num_rays"]]:
+        """The IDW methods' distance mask, and the NeRFs any method being rendered can weight, per ray."""
+        n = camera_d.shape[0]
+        mask = blending.distance_mask(camera_d, self.tau if n > 1 else None)
+        used = torch.zeros_like(mask)
+        for method in self._methods():
+            if method == "nerf":
+                used[self.reference_nerf % n] = True
+            elif method == "nearest":
+                used |= blending.nearest_weights(camera_d) > 0
+            else:
+                used |= mask
+        return mask, used
+
+    def used_nerfs(self, ray_bundle: RayBundle) -> Bool[Tensor, "num_nerfs num_rays"]:
+        """Per (flat) ray, the NeRFs the current settings can give weight to: the reference NeRF (``nerf``), the
+        nearest (``nearest``), those passing the distance test (IDW methods). The others cannot change the ray's
+        colour, so they are not queried for it."""
+        camera_d = blending.camera_to_origin_distances(ray_bundle.origins, self.nerf_origins.to(ray_bundle.origins))
+        return self._usage(camera_d)[1]
 
     def get_outputs(self, ray_bundle: RayBundle) -> dict[str, Tensor]:
         self._check_settings()  # they may have been changed since (attributes, viewer)
         shape = ray_bundle.origins.shape[:-1]
         flat = ray_bundle.flatten() if len(shape) != 1 else ray_bundle
-        outputs = self._blend(flat, self.nerf_samples(flat))
+        outputs = self._blend(flat, self.nerf_samples(flat, self.used_nerfs(flat)))
         return {k: v.reshape(*shape, v.shape[-1]) for k, v in outputs.items()}
 
-    def blend_samples(self, ray_bundle: RayBundle, per_nerf: list[tuple[NerfSamples, Tensor]]) -> dict[str, Tensor]:
+    def blend_samples(self, ray_bundle: RayBundle, per_nerf: list[QueriedSamples | None]) -> dict[str, Tensor]:
         """Blends samples from :meth:`nerf_samples` (flat rays) under the current settings: re-blending the same
         samples with other settings (a gamma sweep) needs no new sub-model queries."""
         self._check_settings()
@@ -454,34 +510,69 @@ class NerfuserModel(Model):
 
     # --- blending ---------------------------------------------------------------------------------------------------
 
-    def _blend(self, ray_bundle: RayBundle, per_nerf: list[tuple[NerfSamples, Tensor]]) -> dict[str, Tensor]:
+    def _stack_samples(
+        self, per_nerf: list[QueriedSamples | None], ids: list[int], used: Bool[Tensor, "num_nerfs num_rays"]
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """The samples of NeRFs ``ids`` as ``[len(ids), R, K]`` tensors in common-frame distances.
+
+        Rays a NeRF was not queried on get zero-weight samples, and ``have`` (``[len(ids), R]``) says which are real.
+        """
+        num_rays = used.shape[1]
+        kmax = max(per_nerf[i].samples.starts.shape[-1] for i in ids)  # type: ignore[union-attr]
+        stacks: list[list[Tensor]] = [[], [], [], [], [], []]
+        for i in ids:
+            q = per_nerf[i]
+            if q is None:
+                raise ValueError(f"nerfuser: NeRF {i} ({self.nerf_names[i]}) is used but was not queried")
+            s = q.samples
+            st, en = s.starts / q.scale, s.ends / q.scale
+            last = en[..., -1]
+            parts = [
+                _pad_samples(st, kmax, last, -1),
+                _pad_samples(en, kmax, last, -1),
+                _pad_samples(s.weights, kmax, 0.0, -1),
+                _pad_samples(s.rgbs, kmax, 0.0, -2),
+                s.background_rgb,
+            ]
+            have = torch.ones(num_rays, dtype=torch.bool, device=st.device)
+            if q.rows is not None:
+                have = torch.zeros_like(have)
+                have[q.rows] = True
+                if bool((used[i] & ~have).any()):
+                    raise ValueError(f"nerfuser: NeRF {i} ({self.nerf_names[i]}) is used on rays it was not queried on")
+                full = []
+                for x in parts:
+                    y = x.new_zeros((num_rays,) + x.shape[1:])
+                    y[q.rows] = x
+                    full.append(y)
+                parts = full
+            for stack, x in zip(stacks, parts + [have], strict=True):
+                stack.append(x)
+        return tuple(torch.stack(x) for x in stacks)  # type: ignore[return-value]
+
+    def _blend(self, ray_bundle: RayBundle, per_nerf: list[QueriedSamples | None]) -> dict[str, Tensor]:
         n = self.num_nerfs
         origins, directions = ray_bundle.origins, ray_bundle.directions
         nerf_origins = self.nerf_origins.to(origins)
-        # Common-frame sample intervals: t_common = t_nerf / k.
-        kmax = max(s.starts.shape[-1] for s, _ in per_nerf)
-        starts, ends, weights, rgbs, bgs = [], [], [], [], []
-        for s, k in per_nerf:
-            st, en = s.starts / k, s.ends / k
-            last = en[..., -1:]
-            starts.append(_pad_samples(st, kmax, last[..., 0], -1))
-            ends.append(_pad_samples(en, kmax, last[..., 0], -1))
-            weights.append(_pad_samples(s.weights, kmax, 0.0, -1))
-            rgbs.append(_pad_samples(s.rgbs, kmax, 0.0, -2))
-            bgs.append(s.background_rgb)
-        starts_t, ends_t = torch.stack(starts), torch.stack(ends)
-        p, c, bg = torch.stack(weights), torch.stack(rgbs), torch.stack(bgs)
         camera_d = blending.camera_to_origin_distances(origins, nerf_origins)  # [N, R]
         tau = self.tau if n > 1 else None
+        mask, used = self._usage(camera_d)
+        # Only the NeRFs some ray uses take part; the nearest always does, so the distance test and the nearest NeRF
+        # come out the same on this subset as on all N.
+        ids = [i for i in range(n) if bool(used[i].any())]
+        starts_t, ends_t, p, c, bg, have = self._stack_samples(per_nerf, ids, used)
+        camera_d, mask, nerf_origins = camera_d[ids], mask[ids], nerf_origins[ids]
+        # A NeRF's missing rays become zero-length, massless samples at the ray's far end, which split nothing.
+        far = torch.where(have, ends_t[..., -1], -math.inf).amax(dim=0)[None, :, None]
+        starts_t = torch.where(have[..., None], starts_t, far)
+        ends_t = torch.where(have[..., None], ends_t, far)
 
-        methods = list(BLEND_METHODS) if self.config.render_all_methods else [self.blend_method]
-        if self.blend_method not in methods:
-            methods.append(self.blend_method)
+        methods = self._methods()
         render_level = [m for m in methods if m != "idw-sample"]
         per_nerf_render = None
         if render_level:
             mids = 0.5 * (starts_t + ends_t)
-            rgb_i = blending.render_samples(p, c, bg).clamp(0.0, 1.0)  # [N, R, 3]
+            rgb_i = blending.render_samples(p, c, bg).clamp(0.0, 1.0)  # [n, R, 3]
             acc_i = p.sum(-1)
             depth_i = median_depth(p, mids)
             exp_i = expected_depth(p, mids)
@@ -490,7 +581,16 @@ class NerfuserModel(Model):
         results: dict[str, dict[str, Tensor]] = {}
         for method in methods:
             if method == "idw-sample":
-                merged = blending.merge_samples(starts_t, ends_t, p, c)
+                # Each ray merges only the samples of the NeRFs passing its distance test: the others must not
+                # split its intervals either, so that a ray renders the same in any batch.
+                far_idw = torch.where(mask, ends_t[..., -1], -math.inf).amax(dim=0)[None, :, None]
+                keep = mask[..., None]
+                merged = blending.merge_samples(
+                    torch.where(keep, starts_t, far_idw),
+                    torch.where(keep, ends_t, far_idw),
+                    torch.where(keep, p, 0.0),
+                    c,
+                )
                 d, d_bg = blending.merged_sample_distances(merged, origins, directions, nerf_origins)
                 out = blending.idw_sample_blend(
                     merged,
@@ -521,7 +621,7 @@ class NerfuserModel(Model):
                     self.gamma,
                     tau,
                     surface_distances=surface_d,  # type: ignore[arg-type]
-                    reference=self.reference_nerf % n,
+                    reference=ids.index(self.reference_nerf % n) if method == "nerf" else 0,
                 )
                 results[method] = {
                     "rgb": blending.blend_renders(rgb_i, w),
@@ -539,7 +639,8 @@ class NerfuserModel(Model):
             "expected_depth": main["expected_depth"][..., None],
         }
         if self.config.share_outputs:
-            share = main["share"]  # [N, R]
+            share = torch.zeros_like(used, dtype=main["share"].dtype)
+            share[ids] = main["share"]  # [N, R]
             for i in range(n):
                 outputs[f"share_{i}"] = share[i][..., None]
             palette = _PALETTE.to(share)[torch.arange(n) % len(_PALETTE)]

@@ -255,6 +255,21 @@ def test_idw_sample_vanished_mass_falls_back_to_mean():
     torch.testing.assert_close(out.nerf_share, torch.tensor([[0.0], [1.0]]))
 
 
+def test_idw_sample_fallback_mean_keeps_the_distance_test():
+    # As above with a third NeRF that fails the distance test: the fallback mean must leave it out too.
+    starts = torch.tensor([[[1.0, 2.0]]] * 3)
+    ends = torch.tensor([[[2.0, 3.0]]] * 3)
+    p = torch.tensor([[[0.0, 0.0]], [[0.5, 0.5]], [[1.0, 0.0]]])
+    rgbs = torch.tensor([[[[1.0, 0, 0], [1.0, 0, 0]]], [[[0, 1.0, 0], [0, 0, 1.0]]], [[[1.0, 0, 0], [1.0, 0, 0]]]])
+    merged = merge_samples(starts, ends, p, rgbs)
+    m = merged.starts.shape[-1]
+    dist = torch.stack([torch.ones(1, m), torch.full((1, m), 10.0), torch.full((1, m), 20.0)])
+    camera = torch.tensor([[1.0], [1.1], [5.0]])
+    out = idw_sample_blend(merged, dist, 1e8, camera_distances=camera, tau=1.2)
+    torch.testing.assert_close(out.rgb, torch.tensor([[0.0, 0.5, 0.5]]))
+    torch.testing.assert_close(out.nerf_share, torch.tensor([[0.0], [1.0], [0.0]]))
+
+
 def test_idw_sample_hand_computed():
     """1 ray, 2 NeRFs, gamma = 1; numbers derived by hand.
 

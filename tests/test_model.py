@@ -194,6 +194,82 @@ def test_gamma_infinity_is_nearest_and_large_gamma_converges(pair):
     fused.tau = None
 
 
+# ----------------------------------------------------------------------------------------------------------------------
+# Only the NeRFs a ray can use are queried
+
+
+def _spy_queries(model: NerfuserModel, monkeypatch) -> list[list[int]]:
+    """Records, per NeRF, the number of rays of each query of its adapter."""
+    calls: list[list[int]] = [[] for _ in model.adapters]
+    for adapter, record in zip(model.adapters, calls, strict=True):
+
+        def spy(bundle, original=adapter.samples, record=record):  # noqa: ANN001, ANN202
+            record.append(len(bundle))
+            return original(bundle)
+
+        monkeypatch.setattr(adapter, "samples", spy)
+    return calls
+
+
+def test_a_nerf_failing_the_distance_test_is_not_queried_and_changes_nothing(pair, monkeypatch):
+    (a, b), T_b = pair[0].nerfs.models, pair[0].nerf_to_common[1].numpy()
+    far = sim3.make_sim3(np.eye(3), np.array([30.0, 0.0, 0.0]), 1.0)  # 50x farther from the camera than A and B
+    nerfs = [("a", a, np.eye(4)), ("b", b, T_b), ("c", a, far)]
+    for method in BLEND_METHODS:
+        two = fuse_models(nerfs[:2], blend_method=method, tau=1.8)
+        three = fuse_models(nerfs, blend_method=method, tau=1.8)
+        calls = _spy_queries(three, monkeypatch)
+        want = render(two, C2W, OUTPUTS + ("share_0", "share_1"))
+        got = render(three, C2W, OUTPUTS + ("share_0", "share_1", "share_2"))
+        assert calls[2] == [] and calls[0], method
+        for key in want:
+            close(got[key], want[key], 1e-6)
+        assert got["share_2"].abs().max() == 0
+
+
+def test_each_ray_uses_only_its_own_nerfs_in_any_batch(pair, monkeypatch):
+    """Two cameras in one batch: C2W blends A and B, the other sits by C, where A and B fail the distance test.
+    Each NeRF is queried only on the rays that use it, and every ray renders as it does alone."""
+    (a, b), T_b = pair[0].nerfs.models, pair[0].nerf_to_common[1].numpy()
+    T_c = sim3.make_sim3(np.eye(3), np.array([1.5, 0.0, 0.0]), 1.0)
+    c2w_c = C2W.copy()
+    c2w_c[:3, 3] += [1.5, 0.0, 0.0]  # sees C as C2W sees A
+    nerfs = [("a", a, np.eye(4)), ("b", b, T_b), ("c", b, T_c)]
+    bundle = runs.make_cameras(np.stack([C2W, c2w_c]), **INTR).generate_rays(
+        torch.arange(2)[:, None], keep_shape=False
+    )
+    at_c = bundle.camera_indices[:, 0] == 1  # the cameras' rays interleave
+    half = int(at_c.sum())
+    alone_c = render(fuse_models([("c", b, T_c)]), c2w_c)["rgb"].reshape(-1, 3)
+    alone_ab = render(fuse_models(nerfs[:2], tau=1.8), C2W)["rgb"].reshape(-1, 3)
+
+    three = fuse_models(nerfs, tau=1.8)
+    calls = _spy_queries(three, monkeypatch)
+    with torch.no_grad():
+        mixed = three(bundle)
+    assert calls == [[half], [half], [half]]
+    close(mixed["rgb"][~at_c], alone_ab, 1e-5)
+    close(mixed["rgb"][at_c], alone_c, 1e-5)
+
+    # Every method at once, C the `nerf` method's NeRF: C is queried on every ray, but on C2W's rays, where it fails
+    # the distance test, it must not even split A's and B's samples: IDW-Sample there is still their blend alone.
+    # (A high gamma flips the weights sharply between A and B, so a split shows: 2e-5 if C's samples took part.)
+    sharp_ab = render(fuse_models(nerfs[:2], tau=1.8, gamma=1e3), C2W)["rgb"].reshape(-1, 3)
+    three = fuse_models(nerfs, tau=1.8, gamma=1e3, render_all_methods=True, reference_nerf=2)
+    calls = _spy_queries(three, monkeypatch)
+    with torch.no_grad():
+        mixed = three(bundle)
+        apart = [three(bundle[~at_c]), three(bundle[at_c])]
+    assert calls == [[half, half], [half, half], [2 * half, half, half]]
+    for key in mixed:
+        close(mixed[key][~at_c], apart[0][key], 1e-5)
+        close(mixed[key][at_c], apart[1][key], 1e-5)
+    close(mixed["rgb_idw_sample"][~at_c], sharp_ab, 1e-6)
+    close(mixed["rgb_idw_sample"][at_c], alone_c, 1e-5)
+    close(mixed["rgb_nerf"][at_c], alone_c, 1e-5)
+    close(mixed["share_2"][at_c], torch.ones_like(mixed["share_2"][at_c]), 1e-6)
+
+
 def test_model_is_frozen_and_its_checkpoint_holds_no_sub_model(trained):
     fused = fuse_models([("a", trained.model, np.eye(4)), ("b", trained.model, T_FAR)])
     assert fused.get_param_groups() == {}
