@@ -47,6 +47,9 @@ class BenchBlendingConfig:
     """Blending rate (None: the paper's value for the scene's layout)."""
     tau: float | None = None
     """Distance test (None: the paper's value for the scene's layout)."""
+    gammas: list[float] = field(default_factory=list)
+    """Also sweep these blending rates with the ground-truth transforms (the paper's gamma ablation; the samples are
+    queried once and re-blended per gamma), e.g. --gammas 1 3 10 30 100."""
     timing_rays: int = 4096
     """Rays in the timed chunk."""
     timing_repeats: int = 15
@@ -91,6 +94,21 @@ def _markdown(report: dict) -> str:
                 f"- IDW-2D = {q['idw-sample']['psnr'] - q['idw-2d']['psnr']:+.2f} dB, "
                 f"- IDW-3D = {q['idw-sample']['psnr'] - q['idw-3d']['psnr']:+.2f} dB."
             )
+        sweep = s.get("gamma_sweep") or {}
+        if sweep:
+            methods = ("nearest", "idw-2d", "idw-3d", "idw-sample")
+            lines += [
+                "",
+                f"Gamma sweep (ground-truth T, tau {s['tau']}), PSNR (dB):",
+                "",
+                "| gamma | " + " | ".join(methods) + " |",
+                "| --- |" + " --- |" * len(methods),
+            ]
+            for g in sorted(sweep, key=float):
+                best = max(sweep[g][m]["psnr"] for m in methods)
+                cells = [f"{sweep[g][m]['psnr']:.2f}" for m in methods]
+                cells = [f"**{c}**" if sweep[g][m]["psnr"] == best else c for c, m in zip(cells, methods, strict=True)]
+                lines.append(f"| {float(g):g} | " + " | ".join(cells) + " |")
         c = s["cost"]
         subs = " + ".join(f"{t * 1000:.0f}" for t in c["sub_s"])
         lines += [
@@ -164,6 +182,11 @@ def main(cfg: BenchBlendingConfig) -> None:
                 models, T, cams, target, gamma=gamma, tau=tau, description=f"{scene.name}: {label} T"
             )
             console.print(label, {m: round(q["psnr"], 2) for m, q in quality[label].items()})
+        sweep = {}
+        if cfg.gammas:
+            result = evaluation.gamma_sweep(models, transforms["ground-truth"], cams, target, cfg.gammas, tau=tau)
+            sweep = {str(g): v for g, v in result.items()}
+            console.print("gamma sweep", {g: round(v["idw-sample"]["psnr"], 2) for g, v in sweep.items()})
         cost = evaluation.measure_render_cost(
             models, transforms["ground-truth"], cams, num_rays=cfg.timing_rays, repeats=cfg.timing_repeats,
             seed=cfg.seed, gamma=gamma, tau=tau,
@@ -175,7 +198,7 @@ def main(cfg: BenchBlendingConfig) -> None:
         report["scenes"].append({
             "name": scene.name, "scene_dir": str(scene.scene_dir), "layout": layout, "gamma": gamma, "tau": tau,
             "test_views": len(cams), "registration": str(registrations.get(scene.name)), "quality": quality,
-            "cost": cost.as_dict(),
+            "gamma_sweep": sweep, "cost": cost.as_dict(),
         })  # fmt: skip
         write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
         write_text_atomic(cfg.output.with_suffix(".md"), _markdown(report))

@@ -145,6 +145,9 @@ def test_bench_blending_script(tiny, tmp_path):
         "128",
         "--timing-repeats",
         "1",
+        "--gammas",
+        "5",
+        "1000",
         "--output",
         str(out),
     ]
@@ -160,8 +163,15 @@ def test_bench_blending_script(tiny, tmp_path):
     for m in evaluation.BLEND_METHODS:  # the "estimated" transforms are the ground truth here
         assert q["estimated"][m]["psnr"] == pytest.approx(q["ground-truth"][m]["psnr"], abs=1e-4)
     assert scene["cost"]["num_rays"] == 128
+    # the sweep re-blends the same samples: at the scene's own gamma it scores what the quality pass scored
+    sweep = scene["gamma_sweep"]
+    assert set(sweep) == {"5.0", "1000.0"}
+    for m in evaluation.BLEND_METHODS:
+        assert sweep["5.0"][m]["psnr"] == pytest.approx(q["ground-truth"][m]["psnr"], abs=1e-4)
+    for m in ("nerf", "nearest"):  # no gamma in them
+        assert sweep["1000.0"][m]["psnr"] == pytest.approx(sweep["5.0"][m]["psnr"], abs=1e-6)
     md = out.with_suffix(".md").read_text()
-    assert "IDW-Sample - Nearest" in md and "ratio" in md
+    assert "IDW-Sample - Nearest" in md and "ratio" in md and "| 1000 |" in md
     assert not list(out.parent.glob("*.tmp"))
     bad = subprocess.run(cmd[:3] + ["nope=/nonexistent:/nonexistent"], capture_output=True, text=True)
     assert bad.returncode != 0 and "ground_truth.json: no ground truth" in bad.stderr
