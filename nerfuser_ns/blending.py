@@ -412,14 +412,17 @@ def sample_distances(
     ray_origins: Float[Tensor, "*bs 3"],
     ray_directions: Float[Tensor, "*bs 3"],
     ts: Float[Tensor, "*bs num_points"],
-    nerf_origins: Float[Tensor, "num_nerfs 3"],
+    nerf_origins: Float[Tensor, "num_nerfs 3"] | Float[Tensor, "num_nerfs *bs 3"],
 ) -> Float[Tensor, "num_nerfs *bs num_points"]:
     """Distance of the points ``o + t d`` along each ray to each NeRF origin (all in the common frame).
 
     As ``sqrt(h^2 + |d|^2 (t - t0)^2)`` with ``t0`` the ray's closest approach to the origin and ``h`` its distance
     there: per-ray terms plus a few ops per point, never an ``[N, *bs, P, 3]`` tensor, and no cancellation.
+    ``nerf_origins`` may differ per ray (``[N, *bs, 3]``: slot i of each ray holds some NeRF's origin).
     """
-    origins = nerf_origins.reshape((nerf_origins.shape[0],) + (1,) * (ray_origins.ndim - 1) + (3,))
+    origins = nerf_origins
+    if nerf_origins.ndim == 2:
+        origins = nerf_origins.reshape((nerf_origins.shape[0],) + (1,) * (ray_origins.ndim - 1) + (3,))
     rel = ray_origins.unsqueeze(0) - origins  # [N, *bs, 3]
     dd = (ray_directions * ray_directions).sum(-1).clamp(min=torch.finfo(ray_directions.dtype).tiny)  # [*bs]
     t0 = -(rel * ray_directions.unsqueeze(0)).sum(-1) / dd  # [N, *bs]
@@ -432,7 +435,7 @@ def merged_sample_distances(
     merged: MergedSamples,
     ray_origins: Float[Tensor, "*bs 3"],
     ray_directions: Float[Tensor, "*bs 3"],
-    nerf_origins: Float[Tensor, "num_nerfs 3"],
+    nerf_origins: Float[Tensor, "num_nerfs 3"] | Float[Tensor, "num_nerfs *bs 3"],
 ) -> tuple[Float[Tensor, "num_nerfs *bs num_merged"], Float[Tensor, " num_nerfs *bs"]]:
     """IDW-Sample distances: merged midpoints to each origin, and the background's (the ray's far end, the last
     merged boundary) to each origin."""

@@ -581,24 +581,29 @@ class NerfuserModel(Model):
         results: dict[str, dict[str, Tensor]] = {}
         for method in methods:
             if method == "idw-sample":
-                # Each ray merges only the samples of the NeRFs passing its distance test: the others must not
-                # split its intervals either, so that a ray renders the same in any batch.
-                far_idw = torch.where(mask, ends_t[..., -1], -math.inf).amax(dim=0)[None, :, None]
-                keep = mask[..., None]
+                # Each ray merges only the samples of the NeRFs passing its distance test, packed into the first
+                # slots (as many as the most any ray of the chunk blends): the others must not split its intervals,
+                # so a ray renders the same in any batch, and the sort sees no samples that cannot count.
+                slots = int(mask.sum(0).max())
+                order = torch.argsort((~mask).to(torch.uint8), dim=0, stable=True)[:slots]  # [S, R]
+                keep = mask.gather(0, order)[..., None]
+                idx = order[..., None].expand(-1, -1, starts_t.shape[-1])
+                st, en = starts_t.gather(0, idx), ends_t.gather(0, idx)
+                far_idw = torch.where(keep[..., 0], en[..., -1], -math.inf).amax(dim=0)[None, :, None]
                 merged = blending.merge_samples(
-                    torch.where(keep, starts_t, far_idw),
-                    torch.where(keep, ends_t, far_idw),
-                    torch.where(keep, p, 0.0),
-                    c,
+                    torch.where(keep, st, far_idw),
+                    torch.where(keep, en, far_idw),
+                    torch.where(keep, p.gather(0, idx), 0.0),
+                    c.gather(0, idx[..., None].expand(-1, -1, -1, c.shape[-1])),
                 )
-                d, d_bg = blending.merged_sample_distances(merged, origins, directions, nerf_origins)
+                d, d_bg = blending.merged_sample_distances(merged, origins, directions, nerf_origins[order])
                 out = blending.idw_sample_blend(
                     merged,
                     d,
                     self.gamma,
-                    background_rgbs=bg,
+                    background_rgbs=bg.gather(0, order[..., None].expand(-1, -1, bg.shape[-1])),
                     background_distances=d_bg,
-                    camera_distances=camera_d if tau is not None else None,
+                    camera_distances=camera_d.gather(0, order) if tau is not None else None,
                     tau=tau,
                 )
                 results[method] = {
@@ -606,7 +611,7 @@ class NerfuserModel(Model):
                     "accumulation": out.accumulation,
                     "depth": median_depth(out.weights, _median_mids(merged)),
                     "expected_depth": out.depth,
-                    "share": out.nerf_share,
+                    "share": torch.zeros_like(camera_d).scatter_(0, order, out.nerf_share),
                 }
             else:
                 assert per_nerf_render is not None

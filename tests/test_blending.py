@@ -351,6 +351,11 @@ def test_sample_distances_match_explicit_points():
     points = o[..., None, :] + ts[..., None] * d[..., None, :]
     explicit = torch.linalg.vector_norm(points[None] - origins[:, None, None, None, :], dim=-1)
     torch.testing.assert_close(sample_distances(o, d, ts, origins), explicit)
+    # Per-ray origins: slot j of each ray holds some NeRF's origin (the fused model packs each ray's NeRFs).
+    order = torch.randint(0, 3, (2, 4, 7), generator=g)
+    per_ray = origins[order]  # [2, 4, 7, 3]
+    want = explicit.gather(0, order[..., None].expand(-1, -1, -1, 9))
+    torch.testing.assert_close(sample_distances(o, d, ts, per_ray), want)
     # A ray through an origin: distance exactly |t - t0| there, no cancellation noise in float32.
     o1, d1 = torch.tensor([[100.0, 0.0, 0.0]]), torch.tensor([[-1.0, 0.0, 0.0]])
     near = sample_distances(o1, d1, torch.tensor([[100.0, 100.001]]), torch.zeros(1, 3))
