@@ -2,6 +2,9 @@
 
 Per ray batch (rays in the COMMON frame):
 
+0. the NeRFs each ray can use are found (:meth:`NerfuserModel.used_nerfs`: the distance test's survivors, the nearest
+   or the reference NeRF, by method); a NeRF is queried only on its rays, and a ray's result depends on its own
+   NeRFs alone;
 1. each ray is mapped into each NeRF's own frame through ``T_common->nerf`` (origins, re-normalised directions,
    near/far), so every NeRF sees the ray it would see itself, and goes through that NeRF's own collider, proposal
    sampler and field (:class:`NerfactoAdapter`);
