@@ -723,6 +723,7 @@ __all__ = [
     "NerfactoAdapter",
     "NerfuserModel",
     "NerfuserModelConfig",
+    "QueriedSamples",
     "fuse_models",
     "make_adapter",
     "map_rays",
