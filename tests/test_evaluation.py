@@ -162,7 +162,11 @@ def test_bench_blending_script(tiny, tmp_path):
     assert set(q) == {"ground-truth", "estimated"} and set(q["estimated"]) == set(evaluation.BLEND_METHODS)
     for m in evaluation.BLEND_METHODS:  # the "estimated" transforms are the ground truth here
         assert q["estimated"][m]["psnr"] == pytest.approx(q["ground-truth"][m]["psnr"], abs=1e-4)
-    assert scene["cost"]["num_rays"] == 128
+    cost = scene["cost"]
+    assert cost["num_rays"] == 128
+    # the nearest NeRF of each ray is always queried, never more rays than the chunk holds
+    assert sum(cost["used_rays"]) >= 128 and all(0 <= r <= 128 for r in cost["used_rays"])
+    assert len(cost["sub_used_s"]) == len(cost["sub_s"]) and cost["ratio_used"] > 0
     # the sweep re-blends the same samples: at the scene's own gamma it scores what the quality pass scored
     sweep = scene["gamma_sweep"]
     assert set(sweep) == {"5.0", "1000.0"}
