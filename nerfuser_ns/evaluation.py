@@ -115,6 +115,32 @@ class SceneRuns:
         images = [np.asarray(Image.open(test_dir / f["file_path"]).convert("RGB"), np.float32) / 255 for f in frames]
         return cams, torch.from_numpy(np.stack(images))
 
+    def test_surface_points(self, reference: int = 0, max_views: int | None = None) -> Float[Tensor, "n h w 3"]:
+        """The ground-truth surface point seen by every test pixel (its pixel-centre ray at the depth file's z-depth),
+        in the common frame; NaN where the ray hits nothing or the depth saturates."""
+        from PIL import Image
+
+        test_dir = self.scene_dir / self.ground_truth["test"]["path"]
+        meta = json.loads((test_dir / "transforms.json").read_text())
+        frames = meta["frames"][:max_views]
+        if any("depth_file_path" not in f for f in frames):
+            raise EvaluationError(f"{test_dir / 'transforms.json'}: test frames without depth_file_path; "
+                                  "regenerate the scene with scripts/make_scene.py")  # fmt: skip
+        w, h = int(meta["w"]), int(meta["h"])
+        cols = (np.arange(w) + 0.5 - meta["cx"]) / meta["fl_x"]
+        rows = -(np.arange(h) + 0.5 - meta["cy"]) / meta["fl_y"]
+        # camera-space points at z-depth 1 (nerfstudio cameras look along -z)
+        d_cam = np.stack(np.broadcast_arrays(cols[None, :], rows[:, None], -np.ones((h, w))), axis=-1)
+        world_to_common = sim3.invert_sim3(self.nerf_to_world()[reference])
+        points = []
+        for f in frames:
+            raw = np.asarray(Image.open(test_dir / f["depth_file_path"]), dtype=np.float64)
+            z = np.where((raw > 0) & (raw < 65535), raw * float(meta["depth_unit_scale_factor"]), np.nan)
+            c2w = np.asarray(f["transform_matrix"], dtype=np.float64)
+            p_world = (d_cam * z[..., None]) @ c2w[:3, :3].T + c2w[:3, 3]
+            points.append(p_world @ world_to_common[:3, :3].T + world_to_common[:3, 3])
+        return torch.from_numpy(np.stack(points)).float()
+
 
 def registered_transforms(registration_file: Path | str, scene: SceneRuns) -> list[Float[np.ndarray, "4 4"]]:
     """Estimated NeRF -> common transforms from a registration file, in the scene's capture order."""

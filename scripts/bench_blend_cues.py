@@ -13,6 +13,11 @@ Each cue gets :func:`nerfuser_ns.metrics.selection_score` (1: always the better 
 worse; pixels count by how much the choice matters there) and the PSNR of its hard per-pixel selection, beside the
 per-pixel oracle's PSNR.
 
+The premise of the surface cue is tested on its own too: each pixel's ground-truth surface point (from the test
+capture's depth files) is placed along the axis from the camera's NeRF origin (u = 0) to the other NeRF's (u = 1),
+and both NeRFs' PSNR is pooled per band of u. Where each NeRF renders its own side of the scene better, the camera's
+NeRF wins the bands below 0.5 and the other NeRF those above.
+
 Example:
     python scripts/bench_blend_cues.py --scenes \\
         oc1=outputs/bench/scenes/object-centric-1:outputs/bench/runs-6000/object-centric-1 \\
@@ -29,8 +34,13 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import tyro
+
+if TYPE_CHECKING:
+    from jaxtyping import Float
+    from torch import Tensor
 
 
 @dataclass
@@ -41,6 +51,9 @@ class BenchBlendCuesConfig:
     """Scenes as NAME=SCENE_DIR:RUNS_DIR (runs at RUNS_DIR/<capture>/nerfacto-cpu/demo/config.yml)."""
     max_test_views: int = 12
     """Test views per scene."""
+    bands: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
+    """Edges of the bands of u (surface point along the axis between the two NeRF origins) the PSNR is pooled in;
+    the first and last band also take everything beyond them."""
     output: Path = Path("outputs/bench/blend_cues.json")
     """JSON results (a markdown summary is written beside it)."""
 
@@ -49,8 +62,34 @@ def _psnr(err_mean: float) -> float:
     return -10.0 * math.log10(max(err_mean, 1e-12))
 
 
-def scene_cues(scene, max_test_views: int, description: str) -> dict:  # noqa: ANN001 - SceneRuns
-    """Per-view and pooled cue scores for one scene (ground-truth transforms)."""
+def axis_position(
+    points: Float[Tensor, "p 3"], origin_a: Float[Tensor, "3"], origin_b: Float[Tensor, "3"]
+) -> Float[Tensor, " p"]:
+    """Where each point lies along the axis from ``origin_a`` (0) to ``origin_b`` (1): the projection's fraction."""
+    axis = origin_b - origin_a
+    return (points - origin_a) @ axis / axis.dot(axis)
+
+
+def band_profile(
+    err: Float[Tensor, "2 p"], u: Float[Tensor, " p"], edges: tuple[float, ...]
+) -> list[dict]:
+    """Per band of ``u`` (the outer bands open-ended; NaN ``u`` left out): pixel count and each NeRF's summed squared
+    error, so bands pool over views by summing."""
+    import torch
+
+    inner = torch.as_tensor(edges[1:-1], dtype=u.dtype)
+    band = torch.bucketize(u, inner, right=True)
+    ok = ~torch.isnan(u)
+    out = []
+    for b in range(len(edges) - 1):
+        m = ok & (band == b)
+        out.append({"pixels": int(m.sum()), "sse": [float(e[m].sum()) for e in err]})
+    return out
+
+
+def scene_cues(scene, max_test_views: int, description: str, bands: tuple[float, ...] = (0.0, 0.5, 1.0)) -> dict:  # noqa: ANN001
+    """Per-view and pooled cue scores for one scene (ground-truth transforms), and both NeRFs' errors pooled per
+    band of the surface's position between their origins."""
     import torch
     from rich.progress import track
 
@@ -59,10 +98,12 @@ def scene_cues(scene, max_test_views: int, description: str) -> dict:  # noqa: A
 
     models = [(n, runs.load_run(p).model) for n, p in zip(scene.captures, scene.configs, strict=True)]
     cams, target = scene.test_views(max_views=max_test_views)
+    surface = scene.test_surface_points(max_views=max_test_views).reshape(len(cams), -1, 3)
     model = evaluation.fused(models, scene.nerf_to_common(), blend_method="nerf", share_outputs=False)
     origins = model.nerf_origins
     chunk = model.config.eval_num_rays_per_chunk
     views, pooled = [], {"err": [], "camera": [], "surface": []}
+    profile = [{"pixels": 0, "sse": [0.0, 0.0]} for _ in range(len(bands) - 1)]
     with torch.no_grad():
         for v in track(range(len(cams)), description=description, transient=True):
             rays = cams.generate_rays(camera_indices=v, keep_shape=True).flatten()
@@ -86,6 +127,10 @@ def scene_cues(scene, max_test_views: int, description: str) -> dict:  # noqa: A
             e2 = err[two]
             camera_pick = torch.zeros(e2.shape[1], dtype=torch.long)  # two[0] is the camera-nearest
             surface_pick = torch.argmin(surf_d[two], dim=0)
+            u = axis_position(surface[v].to(origins.dtype), origins[two[0]], origins[two[1]])
+            for acc, part_b in zip(profile, band_profile(e2, u, bands), strict=True):
+                acc["pixels"] += part_b["pixels"]
+                acc["sse"] = [a + b for a, b in zip(acc["sse"], part_b["sse"], strict=True)]
             views.append({
                 "view": v,
                 "nerfs": [int(i) for i in two],
@@ -108,6 +153,12 @@ def scene_cues(scene, max_test_views: int, description: str) -> dict:  # noqa: A
         "test_views": len(cams),
         "score_camera": selection_score(err_all, torch.cat(pooled["camera"])),
         "score_surface": selection_score(err_all, torch.cat(pooled["surface"])),
+        "bands": [
+            {"u": [lo, hi], "pixel_share": p["pixels"] / max(1, sum(q["pixels"] for q in profile)),
+             "psnr_camera_nerf": _psnr(p["sse"][0] / max(1, p["pixels"])),
+             "psnr_other_nerf": _psnr(p["sse"][1] / max(1, p["pixels"]))}
+            for (lo, hi), p in zip(zip(bands[:-1], bands[1:], strict=False), profile, strict=True)
+        ],  # fmt: skip
         "views": views,
     }
 
@@ -137,6 +188,23 @@ def _markdown(report: dict) -> str:
             f"| {s['name']} | {s['layout']} | {s['test_views']} | {s['score_camera']:.3f} | {s['score_surface']:.3f} "
             f"| {mean('psnr_camera'):.2f} | {mean('psnr_surface'):.2f} | {mean('psnr_oracle'):.2f} |"
         )
+    lines += [
+        "",
+        "Does each NeRF render its own side better? Each pixel's ground-truth surface point at u along the axis from",
+        "the camera's NeRF origin (u = 0) to the other NeRF's (u = 1); PSNR of each NeRF over the pixels of each band",
+        "(all views pooled; the outer bands take everything beyond). The surface cue's premise: the camera's NeRF",
+        "better below u = 0.5, the other above.",
+        "",
+        "| scene | band of u | pixel share | PSNR camera's NeRF | PSNR other NeRF | camera's - other |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for s in report["scenes"]:
+        for b in s["bands"]:
+            lo, hi = b["u"]
+            lines.append(
+                f"| {s['name']} | {lo:g} - {hi:g} | {b['pixel_share']:.2f} | {b['psnr_camera_nerf']:.2f} "
+                f"| {b['psnr_other_nerf']:.2f} | {b['psnr_camera_nerf'] - b['psnr_other_nerf']:+.2f} |"
+            )
     for s in report["scenes"]:
         lines += [
             "",
@@ -155,6 +223,8 @@ def _markdown(report: dict) -> str:
 
 
 def main(cfg: BenchBlendCuesConfig) -> None:
+    if len(cfg.bands) < 2 or any(b >= c for b, c in zip(cfg.bands, cfg.bands[1:], strict=False)):
+        raise SystemExit(f"bench_blend_cues: --bands must be at least two increasing edges, got {cfg.bands}")
     import torch
     from rich.console import Console
 
@@ -174,7 +244,7 @@ def main(cfg: BenchBlendCuesConfig) -> None:
         "scenes": [],
     }
     for scene in scenes:
-        res = scene_cues(scene, cfg.max_test_views, description=scene.name)
+        res = scene_cues(scene, cfg.max_test_views, description=scene.name, bands=cfg.bands)
         console.print(f"{scene.name}: camera cue {res['score_camera']:.3f}, surface cue {res['score_surface']:.3f}")
         report["scenes"].append(res)
         write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")

@@ -181,6 +181,23 @@ def test_bench_blending_script(tiny, tmp_path):
     assert bad.returncode != 0 and "ground_truth.json: no ground truth" in bad.stderr
 
 
+def test_test_surface_points_are_where_the_test_rays_hit(tiny):
+    layout = scenes.layout_from_ground_truth(tiny.scene_dir)
+    to_world = tiny.nerf_to_world()[1]
+    points = tiny.test_surface_points(reference=1).double().numpy()
+    assert points.shape == (layout.test.num_views, layout.test.intrinsics.height, layout.test.intrinsics.width, 3)
+    for v, c2w in enumerate(layout.test.c2w_world):
+        hit = scenes.render_camera(layout.scene, c2w, layout.test.intrinsics, supersample=1)
+        origins, directions = scenes.camera_rays(c2w, *(getattr(layout.test.intrinsics, k) for k in
+                                                        ("fx", "fy", "cx", "cy", "width", "height")))  # fmt: skip
+        expected = (origins + directions * hit.depth[..., None, None])[:, :, 0].numpy()
+        world = points[v] @ to_world[:3, :3].T + to_world[:3, 3]  # back from the common frame
+        mask = hit.mask.numpy()
+        assert mask.any() and np.isnan(world[~mask]).all() and not np.isnan(world[mask]).any()
+        # depth files hold z-depth in millimetres (half a millimetre of rounding)
+        np.testing.assert_allclose(world[mask], expected[mask], atol=2e-3)
+
+
 def test_bench_blend_cues_script(tiny, tmp_path):
     runs_dir = tiny.configs[0].parents[3]
     out = tmp_path / "cues.json"
@@ -197,9 +214,19 @@ def test_bench_blend_cues_script(tiny, tmp_path):
         assert v["psnr_camera"] == pytest.approx(v["psnr_nerfs"][0])
         assert min(v["psnr_nerfs"]) - 1e-9 <= v["psnr_surface"] <= v["psnr_oracle"] + 1e-9
         assert v["distance_ratio"] >= 1.0
-    assert "score surface cue" in out.with_suffix(".md").read_text()
+    # the bands partition the test pixels (a closed room: every ray hits) and pool the camera NeRF's error
+    bands = scene["bands"]
+    assert [b["u"] for b in bands] == [[0.0, 0.25], [0.25, 0.5], [0.5, 0.75], [0.75, 1.0]]
+    assert sum(b["pixel_share"] for b in bands) == pytest.approx(1.0)
+    pooled_mse = sum(b["pixel_share"] * 10 ** (-b["psnr_camera_nerf"] / 10) for b in bands)
+    per_view_mse = np.mean([10 ** (-v["psnr_nerfs"][0] / 10) for v in scene["views"]])
+    assert pooled_mse == pytest.approx(per_view_mse, rel=1e-4)
+    md = out.with_suffix(".md").read_text()
+    assert "score surface cue" in md and "| tiny | 0.25 - 0.5 |" in md
     bad = subprocess.run(cmd[:3] + ["nope=/nonexistent:/nonexistent"], capture_output=True, text=True)
     assert bad.returncode != 0 and "ground_truth.json: no ground truth" in bad.stderr
+    bad = subprocess.run(cmd + ["--bands", "0.5", "0.2"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "--bands must be at least two increasing edges" in bad.stderr
 
 
 def test_gamma_sweep_matches_separate_renders(tiny, models):
