@@ -42,6 +42,9 @@ if TYPE_CHECKING:
     from jaxtyping import Float
     from torch import Tensor
 
+BANDS = (0.0, 0.25, 0.5, 0.75, 1.0)
+"""Default band edges of u, the surface point's position between the two NeRF origins."""
+
 
 @dataclass
 class BenchBlendCuesConfig:
@@ -51,7 +54,7 @@ class BenchBlendCuesConfig:
     """Scenes as NAME=SCENE_DIR:RUNS_DIR (runs at RUNS_DIR/<capture>/nerfacto-cpu/demo/config.yml)."""
     max_test_views: int = 12
     """Test views per scene."""
-    bands: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
+    bands: tuple[float, ...] = BANDS
     """Edges of the bands of u (surface point along the axis between the two NeRF origins) the PSNR is pooled in;
     the first and last band also take everything beyond them."""
     output: Path = Path("outputs/bench/blend_cues.json")
@@ -87,7 +90,12 @@ def band_profile(
     return out
 
 
-def scene_cues(scene, max_test_views: int, description: str, bands: tuple[float, ...] = (0.0, 0.5, 1.0)) -> dict:  # noqa: ANN001
+def scene_cues(
+    scene,  # noqa: ANN001 - SceneRuns
+    max_test_views: int,
+    description: str,
+    bands: tuple[float, ...] = BANDS,
+) -> dict:
     """Per-view and pooled cue scores for one scene (ground-truth transforms), and both NeRFs' errors pooled per
     band of the surface's position between their origins."""
     import torch
@@ -244,7 +252,10 @@ def main(cfg: BenchBlendCuesConfig) -> None:
         "scenes": [],
     }
     for scene in scenes:
-        res = scene_cues(scene, cfg.max_test_views, description=scene.name, bands=cfg.bands)
+        try:
+            res = scene_cues(scene, cfg.max_test_views, description=scene.name, bands=cfg.bands)
+        except evaluation.EvaluationError as e:
+            raise SystemExit(f"bench_blend_cues: {e}") from None
         console.print(f"{scene.name}: camera cue {res['score_camera']:.3f}, surface cue {res['score_surface']:.3f}")
         report["scenes"].append(res)
         write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")

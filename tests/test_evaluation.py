@@ -198,6 +198,18 @@ def test_test_surface_points_are_where_the_test_rays_hit(tiny):
         np.testing.assert_allclose(world[mask], expected[mask], atol=2e-3)
 
 
+
+def test_test_surface_points_need_depth_files(tiny, tmp_path):
+    shutil.copytree(tiny.scene_dir / "test", tmp_path / "test")
+    meta = json.loads((tmp_path / "test" / "transforms.json").read_text())
+    for f in meta["frames"]:
+        del f["depth_file_path"]
+    (tmp_path / "test" / "transforms.json").write_text(json.dumps(meta))
+    scene = SceneRuns("x", tmp_path, tiny.configs, tiny.ground_truth)
+    with pytest.raises(EvaluationError, match=r"test/transforms.json: test frames without depth_file_path"):
+        scene.test_surface_points()
+
+
 def test_bench_blend_cues_script(tiny, tmp_path):
     runs_dir = tiny.configs[0].parents[3]
     out = tmp_path / "cues.json"
