@@ -101,15 +101,22 @@ class SceneRuns:
         world_to_common = sim3.invert_sim3(to_world[reference])
         return [world_to_common @ T for T in to_world]
 
-    def test_views(self, reference: int = 0, max_views: int | None = None) -> tuple[Cameras, Float[Tensor, "n h w 3"]]:
-        """The world-frame test capture, posed in the common frame, and its ground-truth images."""
-        from PIL import Image
-
+    def _test_capture(
+        self, reference: int, max_views: int | None
+    ) -> tuple[Path, dict, list[dict], Float[np.ndarray, "n 4 4"], Float[np.ndarray, "4 4"]]:
+        """The test capture's folder, transforms.json, its first ``max_views`` frames, their world-frame poses
+        [n, 4, 4], and the world -> common SIM(3)."""
         test_dir = self.scene_dir / self.ground_truth["test"]["path"]
         meta = json.loads((test_dir / "transforms.json").read_text())
         frames = meta["frames"][:max_views]
         c2w_world = np.stack([np.asarray(f["transform_matrix"], dtype=np.float64) for f in frames])
-        world_to_common = sim3.invert_sim3(self.nerf_to_world()[reference])
+        return test_dir, meta, frames, c2w_world, sim3.invert_sim3(self.nerf_to_world()[reference])
+
+    def test_views(self, reference: int = 0, max_views: int | None = None) -> tuple[Cameras, Float[Tensor, "n h w 3"]]:
+        """The world-frame test capture, posed in the common frame, and its ground-truth images."""
+        from PIL import Image
+
+        test_dir, meta, frames, c2w_world, world_to_common = self._test_capture(reference, max_views)
         c2w = sim3.transform_poses(world_to_common, c2w_world)
         cams = runs.make_cameras(c2w[:, :3], meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"])
         images = [np.asarray(Image.open(test_dir / f["file_path"]).convert("RGB"), np.float32) / 255 for f in frames]
@@ -120,9 +127,7 @@ class SceneRuns:
         in the common frame; NaN where the ray hits nothing or the depth saturates."""
         from PIL import Image
 
-        test_dir = self.scene_dir / self.ground_truth["test"]["path"]
-        meta = json.loads((test_dir / "transforms.json").read_text())
-        frames = meta["frames"][:max_views]
+        test_dir, meta, frames, c2w_world, world_to_common = self._test_capture(reference, max_views)
         if any("depth_file_path" not in f for f in frames):
             raise EvaluationError(f"{test_dir / 'transforms.json'}: test frames without depth_file_path; "
                                   "regenerate the scene with scripts/make_scene.py")  # fmt: skip
@@ -131,12 +136,10 @@ class SceneRuns:
         rows = -(np.arange(h) + 0.5 - meta["cy"]) / meta["fl_y"]
         # camera-space points at z-depth 1 (nerfstudio cameras look along -z)
         d_cam = np.stack(np.broadcast_arrays(cols[None, :], rows[:, None], -np.ones((h, w))), axis=-1)
-        world_to_common = sim3.invert_sim3(self.nerf_to_world()[reference])
         points = []
-        for f in frames:
+        for f, c2w in zip(frames, c2w_world, strict=True):
             raw = np.asarray(Image.open(test_dir / f["depth_file_path"]), dtype=np.float64)
             z = np.where((raw > 0) & (raw < 65535), raw * float(meta["depth_unit_scale_factor"]), np.nan)
-            c2w = np.asarray(f["transform_matrix"], dtype=np.float64)
             p_world = (d_cam * z[..., None]) @ c2w[:3, :3].T + c2w[:3, 3]
             points.append(p_world @ world_to_common[:3, :3].T + world_to_common[:3, 3])
         return torch.from_numpy(np.stack(points)).float()

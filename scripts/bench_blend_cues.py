@@ -73,20 +73,21 @@ def axis_position(
     return (points - origin_a) @ axis / axis.dot(axis)
 
 
-def band_profile(
-    err: Float[Tensor, "2 p"], u: Float[Tensor, " p"], edges: tuple[float, ...]
-) -> list[dict]:
-    """Per band of ``u`` (the outer bands open-ended; NaN ``u`` left out): pixel count and each NeRF's summed squared
-    error, so bands pool over views by summing."""
+def band_profile(err: Float[Tensor, "2 p"], u: Float[Tensor, " p"], edges: tuple[float, ...]) -> list[dict]:
+    """Per band of ``u`` (the outer bands open-ended; NaN ``u`` left out): its share of the pixels with a ``u`` and
+    the PSNR of each of the two NeRFs over its pixels."""
     import torch
 
-    inner = torch.as_tensor(edges[1:-1], dtype=u.dtype)
-    band = torch.bucketize(u, inner, right=True)
+    band = torch.bucketize(u, torch.as_tensor(edges[1:-1], dtype=u.dtype), right=True)
     ok = ~torch.isnan(u)
+    total = max(1, int(ok.sum()))
     out = []
-    for b in range(len(edges) - 1):
+    for b, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=False)):
         m = ok & (band == b)
-        out.append({"pixels": int(m.sum()), "sse": [float(e[m].sum()) for e in err]})
+        n = max(1, int(m.sum()))
+        out.append({"u": [lo, hi], "pixel_share": int(m.sum()) / total,
+                    "psnr_camera_nerf": _psnr(float(err[0][m].sum()) / n),
+                    "psnr_other_nerf": _psnr(float(err[1][m].sum()) / n)})  # fmt: skip
     return out
 
 
@@ -110,8 +111,7 @@ def scene_cues(
     model = evaluation.fused(models, scene.nerf_to_common(), blend_method="nerf", share_outputs=False)
     origins = model.nerf_origins
     chunk = model.config.eval_num_rays_per_chunk
-    views, pooled = [], {"err": [], "camera": [], "surface": []}
-    profile = [{"pixels": 0, "sse": [0.0, 0.0]} for _ in range(len(bands) - 1)]
+    views, pooled = [], {"err": [], "camera": [], "surface": [], "u": []}
     with torch.no_grad():
         for v in track(range(len(cams)), description=description, transient=True):
             rays = cams.generate_rays(camera_indices=v, keep_shape=True).flatten()
@@ -135,10 +135,6 @@ def scene_cues(
             e2 = err[two]
             camera_pick = torch.zeros(e2.shape[1], dtype=torch.long)  # two[0] is the camera-nearest
             surface_pick = torch.argmin(surf_d[two], dim=0)
-            u = axis_position(surface[v].to(origins.dtype), origins[two[0]], origins[two[1]])
-            for acc, part_b in zip(profile, band_profile(e2, u, bands), strict=True):
-                acc["pixels"] += part_b["pixels"]
-                acc["sse"] = [a + b for a, b in zip(acc["sse"], part_b["sse"], strict=True)]
             views.append({
                 "view": v,
                 "nerfs": [int(i) for i in two],
@@ -154,6 +150,7 @@ def scene_cues(
             pooled["err"].append(e2)
             pooled["camera"].append(camera_pick)
             pooled["surface"].append(surface_pick)
+            pooled["u"].append(axis_position(surface[v].to(origins.dtype), origins[two[0]], origins[two[1]]))
     err_all = torch.cat(pooled["err"], dim=1)
     return {
         "name": scene.name,
@@ -161,12 +158,7 @@ def scene_cues(
         "test_views": len(cams),
         "score_camera": selection_score(err_all, torch.cat(pooled["camera"])),
         "score_surface": selection_score(err_all, torch.cat(pooled["surface"])),
-        "bands": [
-            {"u": [lo, hi], "pixel_share": p["pixels"] / max(1, sum(q["pixels"] for q in profile)),
-             "psnr_camera_nerf": _psnr(p["sse"][0] / max(1, p["pixels"])),
-             "psnr_other_nerf": _psnr(p["sse"][1] / max(1, p["pixels"]))}
-            for (lo, hi), p in zip(zip(bands[:-1], bands[1:], strict=False), profile, strict=True)
-        ],  # fmt: skip
+        "bands": band_profile(err_all, torch.cat(pooled["u"]), bands),
         "views": views,
     }
 

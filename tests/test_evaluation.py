@@ -185,18 +185,17 @@ def test_test_surface_points_are_where_the_test_rays_hit(tiny):
     layout = scenes.layout_from_ground_truth(tiny.scene_dir)
     to_world = tiny.nerf_to_world()[1]
     points = tiny.test_surface_points(reference=1).double().numpy()
-    assert points.shape == (layout.test.num_views, layout.test.intrinsics.height, layout.test.intrinsics.width, 3)
+    k = layout.test.intrinsics
+    assert points.shape == (layout.test.num_views, k.height, k.width, 3)
     for v, c2w in enumerate(layout.test.c2w_world):
-        hit = scenes.render_camera(layout.scene, c2w, layout.test.intrinsics, supersample=1)
-        origins, directions = scenes.camera_rays(c2w, *(getattr(layout.test.intrinsics, k) for k in
-                                                        ("fx", "fy", "cx", "cy", "width", "height")))  # fmt: skip
+        hit = scenes.render_camera(layout.scene, c2w, k, supersample=1)
+        origins, directions = scenes.camera_rays(c2w, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
         expected = (origins + directions * hit.depth[..., None, None])[:, :, 0].numpy()
         world = points[v] @ to_world[:3, :3].T + to_world[:3, 3]  # back from the common frame
         mask = hit.mask.numpy()
         assert mask.any() and np.isnan(world[~mask]).all() and not np.isnan(world[mask]).any()
         # depth files hold z-depth in millimetres (half a millimetre of rounding)
         np.testing.assert_allclose(world[mask], expected[mask], atol=2e-3)
-
 
 
 def test_test_surface_points_need_depth_files(tiny, tmp_path):
