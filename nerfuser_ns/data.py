@@ -17,7 +17,8 @@ Fusion spec
   run finds it. With a single run and no registration file, the common frame is that run's frame.
 * ``test_data`` (optional): a nerfstudio dataset (transforms.json + images) whose poses are in the frame given by
   ``test_to_common`` (a 4x4 SIM(3) into the common frame, default identity). ``ns-eval`` scores the blended renders
-  against its images. Its poses are used as stored: no re-centring, re-orientation or re-scaling.
+  against its images. Its poses are used as stored: no re-centring, re-orientation or re-scaling (and its
+  ``applied_transform`` / ``applied_scale``, which describe how the stored poses were made, are not applied again).
 
 Relative paths are relative to the spec file's folder. ``--data`` may also point at a registration file directly
 (then its runs are fused, without test images).
@@ -39,6 +40,7 @@ file's folder.
 from __future__ import annotations
 
 import copy
+import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,6 +60,7 @@ from nerfstudio.engine.trainer import TrainerConfig
 from torch.nn import Parameter
 
 from nerfuser_ns.registration import RegistrationConfig
+from nerfuser_ns.runs import applied_transform, default_device, stored_to_nerf
 
 SPEC_FILENAME = "fusion.json"
 """Name of the spec file looked up when ``--data`` is a folder."""
@@ -273,7 +276,7 @@ def run_registration(
     from nerfuser_ns.runs import RunLoadError
 
     try:
-        registration.register_runs(config_paths, output, config=config, names=names, device="cpu")
+        registration.register_runs(config_paths, output, config=config, names=names, device=default_device())
     except (registration.RegistrationError, RunLoadError) as e:
         raise FusionSpecError(
             _one_line(f"{output}: automatic registration failed: {e} (run ns-nerfuser-register with other settings)")
@@ -478,9 +481,12 @@ def load_test_dataparser_outputs(
         parsed = parser_config.setup().get_dataparser_outputs(split="test")
     except Exception as e:  # noqa: BLE001 - any parsing failure is the dataset's fault
         raise _err(spec.test_data, f"unreadable test dataset ({type(e).__name__}: {e})") from None
-    # The parser's own normalisation (identity with the defaults) composes with test_to_common.
-    to_parser = np.eye(4)
-    to_parser[:3, :4] = parsed.dataparser_scale * parsed.dataparser_transform.double().numpy()
+    # The parser's own normalisation (identity with the defaults) composes with test_to_common. What it reports also
+    # holds the dataset's applied_transform / applied_scale, which it never applied to the stored poses.
+    meta = json.loads((spec.test_data / "transforms.json").read_text())
+    applied, applied_scale = applied_transform(spec.test_data, meta)
+    to_parser = stored_to_nerf(parsed.dataparser_transform.double().numpy(), parsed.dataparser_scale, applied,
+                               applied_scale)  # fmt: skip
     cameras = _transform_cameras(parsed.cameras, spec.test_to_common @ np.linalg.inv(to_parser))
     return DataparserOutputs(
         image_filenames=parsed.image_filenames,
@@ -603,9 +609,10 @@ class NerfuserDataManager(DataManager):
             input_dataset=self.eval_dataset, device=self.device
         )
 
-    @property
+    @functools.cached_property
     def fixed_indices_eval_dataloader(self) -> FixedIndicesEvalDataloader:
-        """All test images in order (``ns-eval``)."""
+        """All test images in order (``ns-eval``). A cached property: nerfstudio's viewer reads every plain attribute
+        and property of the pipeline but skips cached ones, so a spec without test images still opens in it."""
         if self.eval_dataset is None:
             raise RuntimeError(
                 f"{self.spec.spec_path or self.config.data}: the fusion spec has no test images; add 'test_data' "

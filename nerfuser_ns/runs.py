@@ -7,12 +7,15 @@ the checkpoint. ``with_data=True`` builds the whole pipeline (datamanager includ
 training cameras; then the dataset must be where config.yml says, or at ``data_override``.
 
 Frames: a run's "NeRF frame" is the normalised frame nerfstudio trains in. ``dataparser_transforms.json`` beside
-config.yml maps the dataset's own frame into it; :attr:`LoadedRun.data_to_nerf` is that map as a 4x4 SIM(3)
+config.yml, with the dataset's ``applied_transform`` / ``applied_scale`` (``ns-process-data`` writes them), maps the
+frame of the dataset's stored poses into it; :attr:`LoadedRun.data_to_nerf` is that map as a 4x4 SIM(3)
 (``[[s R, s t], [0, 1]]``, points as columns).
 """
 
 from __future__ import annotations
 
+import copy
+import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +26,7 @@ import torch
 import yaml
 from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.base_model import Model
@@ -50,10 +54,10 @@ class LoadedRun:
     """The checkpoint that was loaded."""
     step: int
     """Its training step."""
-    data_to_nerf: np.ndarray | None
-    """4x4 SIM(3) from the dataset frame to the NeRF frame (None when dataparser_transforms.json is absent)."""
     pipeline: object | None = None
     """The full pipeline when loaded with ``with_data=True``."""
+    data_override: Path | None = None
+    """The dataset folder given instead of the one config.yml records."""
 
     @property
     def name(self) -> str:
@@ -62,6 +66,12 @@ class LoadedRun:
     @property
     def device(self) -> torch.device:
         return self.model.device
+
+    @functools.cached_property
+    def data_to_nerf(self) -> np.ndarray | None:
+        """4x4 SIM(3) from the dataset's stored pose frame to the NeRF frame (:func:`read_dataparser_transform`; None
+        when dataparser_transforms.json is absent). Read on first use: rendering alone never needs the dataset."""
+        return read_dataparser_transform(self.config_path, self.data_override)
 
 
 def resolve_config_path(config_path: Path | str) -> Path:
@@ -112,8 +122,71 @@ def find_checkpoint(config_path: Path, config: TrainerConfig, step: int | None =
     return steps[step], step
 
 
-def read_dataparser_transform(config_path: Path) -> np.ndarray | None:
-    """The 4x4 SIM(3) dataset frame -> NeRF frame, from dataparser_transforms.json beside config.yml."""
+COLMAP_APPLIED_TRANSFORM = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]])
+"""What nerfstudio's dataparser assumes for a dataset with ``colmap/sparse/0`` and no ``applied_transform`` key."""
+
+
+def applied_transform(data_dir: Path, meta: dict) -> tuple[Float[np.ndarray, "4 4"], float]:
+    """The ``applied_transform`` (as 4x4) and ``applied_scale`` of a nerfstudio dataset, as nerfstudio reads them.
+
+    ``ns-process-data`` stores poses already mapped by ``applied_transform`` (original COLMAP frame -> stored frame);
+    nerfstudio's dataparser folds it, and ``applied_scale``, into ``dataparser_transforms.json`` without applying them
+    to the stored poses. Missing keys mean identity and 1 (or nerfstudio's COLMAP default when ``colmap/sparse/0``
+    exists, as its dataparser does).
+    """
+    value = meta.get("applied_transform")
+    if value is None and (Path(data_dir) / "colmap" / "sparse" / "0").exists():
+        value = COLMAP_APPLIED_TRANSFORM
+    A = np.eye(4)
+    if value is not None:
+        value = np.asarray(value, dtype=np.float64)
+        if value.shape not in ((3, 4), (4, 4)) or not np.isfinite(value).all():
+            raise RunLoadError(f"{data_dir}/transforms.json: 'applied_transform' must be a finite 3x4 matrix")
+        A[:3, :4] = value[:3, :4]
+    scale = float(meta.get("applied_scale", 1.0))
+    if not (np.isfinite(scale) and scale > 0):
+        raise RunLoadError(f"{data_dir}/transforms.json: 'applied_scale' must be positive, got {scale}")
+    return A, scale
+
+
+def stored_to_nerf(
+    transform: Float[np.ndarray, "3 4"],
+    scale: float,
+    applied: Float[np.ndarray, "4 4"] | None = None,
+    applied_scale: float = 1.0,
+) -> Float[np.ndarray, "4 4"]:
+    """SIM(3) from a dataset's stored pose frame to the dataparser's output frame.
+
+    ``transform``/``scale`` are what nerfstudio reports (``dataparser_transforms.json``, ``DataparserOutputs``): they
+    map the ORIGINAL frame (before ``applied_transform``) and include ``applied_scale``. The stored poses were only
+    re-oriented, centred and scaled by the dataparser's own part: ``S(scale / applied_scale) transform applied^-1``.
+    """
+    T = np.eye(4)
+    T[:3, :4] = np.asarray(transform, dtype=np.float64)[:3, :4]
+    if applied is not None:
+        T = T @ np.linalg.inv(applied)
+    out = T.copy()
+    out[:3, :] *= float(scale) / float(applied_scale)
+    return out
+
+
+def dataset_path(config: TrainerConfig, data_override: Path | None = None) -> Path | None:
+    """The run's dataset folder: the override, or the path recorded in config.yml (None when it records none)."""
+    if data_override is not None:
+        return Path(data_override)
+    data = config.pipeline.datamanager.data or getattr(config.pipeline.datamanager.dataparser, "data", None)
+    return None if data is None else Path(data)
+
+
+def read_dataparser_transform(config_path: Path, data_override: Path | None = None) -> np.ndarray | None:
+    """The 4x4 SIM(3) dataset frame -> NeRF frame (``p_nerf = T p_data``), where the dataset frame is the frame of the
+    poses stored in the run's ``transforms.json``.
+
+    Built from ``dataparser_transforms.json`` beside config.yml and, for nerfstudio-format datasets, the dataset's
+    ``applied_transform`` / ``applied_scale`` (see :func:`stored_to_nerf`): the dataset must then be readable (at the
+    path config.yml records, or ``data_override``). None when the run has no dataparser_transforms.json.
+    """
+    config_path = Path(config_path)
     path = config_path.parent / "dataparser_transforms.json"
     if not path.is_file():
         return None
@@ -125,9 +198,70 @@ def read_dataparser_transform(config_path: Path) -> np.ndarray | None:
         raise RunLoadError(f"{path}: unreadable dataparser transform ({type(e).__name__}: {e})") from None
     if transform.shape != (3, 4) or not np.isfinite(transform).all() or not np.isfinite(scale) or scale <= 0:
         raise RunLoadError(f"{path}: expected a finite 3x4 'transform' and a positive 'scale'")
-    out = np.eye(4)
-    out[:3, :4] = scale * transform
-    return out
+    config = read_config(config_path)
+    if not isinstance(config.pipeline.datamanager.dataparser, NerfstudioDataParserConfig):
+        # Other dataparsers report the map from the frame they read poses in.
+        return stored_to_nerf(transform, scale)
+    data = dataset_path(config, data_override)
+    dataset_meta = _read_transforms_json(config_path, data)
+    A, applied_scale = applied_transform(data.parent if data.suffix == ".json" else data, dataset_meta)
+    return stored_to_nerf(transform, scale, A, applied_scale)
+
+
+def _read_transforms_json(config_path: Path, data: Path | None) -> dict:
+    """The dataset's transforms.json (nerfstudio accepts the folder or the file itself as --data)."""
+    if data is None:
+        raise RunLoadError(f"{config_path}: records no dataset; pass the run's dataset folder (--data)")
+    path = data if data.suffix == ".json" else data / "transforms.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise RunLoadError(
+            f"{path}: cannot read the run's dataset ({type(e).__name__}), needed to map the dataset frame into the "
+            "NeRF frame (nerfstudio's applied_transform lives there); pass the dataset folder (--data)"
+        ) from None
+
+
+def training_cameras(config_path: Path | str, data_override: Path | None = None) -> Cameras:
+    """The run's training cameras in its NeRF frame, parsed from its dataset with the run's own dataparser settings.
+
+    Only transforms.json (and the first image's size) is read: no images are loaded and no datamanager (stock
+    nerfacto's spawns worker processes) is built. Raises :class:`RunLoadError` naming the dataset when it is gone.
+    """
+    config_path = resolve_config_path(config_path)
+    config = read_config(config_path)
+    data = dataset_path(config, data_override)
+    if data is None or not data.exists():
+        raise RunLoadError(
+            f"{config_path}: its dataset {data} is missing; pass the dataset folder (ns-nerfuser-register --data) "
+            "or register without training poses (--sampling.source hemisphere)"
+        )
+    parser_config = copy.deepcopy(config.pipeline.datamanager.dataparser)
+    parser_config.data = data
+    try:
+        parsed = parser_config.setup().get_dataparser_outputs(split="train")
+    except Exception as e:  # noqa: BLE001 - any parsing failure is the dataset's fault
+        raise RunLoadError(f"{data}: the run's dataset cannot be parsed ({type(e).__name__}: {e})") from None
+    return parsed.cameras
+
+
+def optimized_poses(model: Model, c2w: Float[Tensor, "n 3|4 4"]) -> Float[Tensor, "n 3 4"]:
+    """Training poses corrected by the run's camera optimiser, as nerfstudio applies it (``apply_to_camera``: the
+    correction's rotation left-multiplies the camera's, its translation adds to the centre). Unchanged when the model
+    has no optimiser, it is off, or its number of cameras differs from ``c2w``'s."""
+    c2w = torch.as_tensor(c2w)[..., :3, :4]
+    optimizer = getattr(model, "camera_optimizer", None)
+    adjustment = getattr(optimizer, "pose_adjustment", None)
+    if optimizer is None or adjustment is None or optimizer.config.mode == "off" or len(adjustment) != len(c2w):
+        return c2w
+    with torch.no_grad():
+        adj = optimizer(torch.arange(len(c2w), device=adjustment.device)).to(c2w)
+    return torch.cat([adj[:, :3, :3] @ c2w[:, :3, :3], c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
+
+
+def default_device() -> str:
+    """Where runs render unless told otherwise: the GPU when torch sees one, else the CPU."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def _model_state(state: dict, config_path: Path) -> dict[str, Tensor]:
@@ -252,8 +386,8 @@ def load_run(
         model=model,
         checkpoint_path=ckpt_path,
         step=ckpt_step,
-        data_to_nerf=read_dataparser_transform(config_path),
         pipeline=pipeline,
+        data_override=data_override,
     )
 
 

@@ -297,6 +297,24 @@ def test_datamanager_poses_test_images_in_the_common_frame(tmp_path, two_runs):
     assert torch.all(aabb[0] <= torch.tensor([-1.0, -1.0, -1.0])) and torch.all(aabb[1] >= torch.tensor(1.0))
 
 
+def test_test_images_with_applied_transform_keep_their_stored_poses(tmp_path, two_runs):
+    """A test capture made by ns-process-data carries applied_transform / applied_scale: its stored poses are what
+    test_to_common maps, and nerfstudio's report of those keys must not move them again."""
+    a, b = two_runs
+    registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
+                                                       {"config": str(b), "transform": T_B.tolist()}])  # fmt: skip
+    c2ws = [sim3.make_sim3(scene_yaw(0.4 * i), np.array([0.1 * i, 0.3, 2.0]), 1.0) for i in range(3)]
+    write_dataset(tmp_path / "test", c2ws)
+    meta = json.loads((tmp_path / "test" / "transforms.json").read_text())
+    meta.update(applied_transform=[[0, 1, 0, 0.5], [1, 0, 0, 0], [0, 0, -1, 0.2]], applied_scale=3.0)
+    (tmp_path / "test" / "transforms.json").write_text(json.dumps(meta))
+    test_to_common = sim3.make_sim3(scene_yaw(-0.2), np.array([0.3, 0.1, -0.4]), 0.7)
+    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b], test_data="test", test_to_common=test_to_common)
+    dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
+    expected = sim3.transform_poses(test_to_common, np.stack(c2ws))[:, :3, :4]
+    np.testing.assert_allclose(dm.eval_dataset.cameras.camera_to_worlds.numpy(), expected, atol=1e-5)
+
+
 def test_datamanager_without_test_images(tmp_path, two_runs):
     registration_file(
         tmp_path / "registration.json",

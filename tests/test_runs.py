@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import socket
 from pathlib import Path
 
@@ -79,7 +80,9 @@ def test_load_with_relative_output_dir_from_another_cwd_and_missing_dataset(trai
     monkeypatch.chdir(tmp_path)
     loaded = runs.load_run(moved / "config.yml")
     assert loaded.checkpoint_path.parent == moved / "nerfstudio_models"
-    assert loaded.data_to_nerf is not None and loaded.data_to_nerf.shape == (4, 4)
+    # the dataset frame needs the dataset (its applied_transform lives there): a clear error, only when asked for
+    with pytest.raises(runs.RunLoadError, match="cannot read the run's dataset"):
+        loaded.data_to_nerf  # noqa: B018
     with pytest.raises(runs.RunLoadError, match="dataset /nonexistent/dataset is missing"):
         runs.load_run(moved / "config.yml", with_data=True)
 
@@ -149,3 +152,120 @@ def test_runtime_installed_by_loading():
     from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
     assert LearnedPerceptualImagePatchSimilarity is runtime.LazyLPIPS
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Frames of datasets made by ns-process-data (applied_transform / applied_scale)
+
+COLMAP_TO_STORED = np.array([[0.0, 1.0, 0.0, 0.3], [1.0, 0.0, 0.0, -0.2], [0.0, 0.0, -1.0, 0.1]])  # a rotation + shift
+
+
+def _process_data_like_dataset(folder: Path, world_c2w: np.ndarray, applied_scale: float) -> tuple[Path, np.ndarray]:
+    """A dataset as ns-process-data writes it: poses of an arbitrary "COLMAP" frame, stored after applied_transform and
+    applied_scale, both keys recorded. Returns the folder and the stored-frame -> world SIM(3)."""
+    from PIL import Image
+
+    from nerfuser_ns import sim3
+
+    world_to_colmap = sim3.make_sim3(sim3.so3_exp(np.array([0.3, -0.5, 1.1])), np.array([2.0, -1.0, 0.5]), 3.0)
+    A = np.eye(4)
+    A[:3, :4] = COLMAP_TO_STORED
+    colmap_to_stored = np.diag([applied_scale] * 3 + [1.0]) @ A
+    world_to_stored = colmap_to_stored @ world_to_colmap
+    stored = sim3.transform_poses(world_to_stored, world_c2w)
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for i, c2w in enumerate(stored):
+        Image.fromarray(np.full((6, 8, 3), 30 * i, dtype=np.uint8)).save(folder / "images" / f"frame_{i + 1:05d}.png")
+        frames.append({"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": c2w.tolist()})
+    meta = {"camera_model": "OPENCV", "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "frames": frames,
+            "applied_transform": COLMAP_TO_STORED.tolist(), "applied_scale": applied_scale}  # fmt: skip
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return folder, sim3.invert_sim3(world_to_stored)
+
+
+def _run_on(root: Path, data: Path) -> Path:
+    """A run folder (config.yml + dataparser_transforms.json as ns-train writes them) on ``data``; nothing trained."""
+    from nerfuser_ns.method_configs.nerfacto_cpu import nerfacto_cpu_config
+
+    config = nerfacto_cpu_config(10)
+    config.experiment_name, config.timestamp, config.output_dir = "x", "run", root
+    config.pipeline.datamanager.data = data
+    run_dir = root / "x" / "nerfacto-cpu" / "run"
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.yml").write_text(yaml.dump(config))
+    parser = config.pipeline.datamanager.dataparser
+    parser.data = data
+    parser.setup().get_dataparser_outputs("train").save_dataparser_transform(run_dir / "dataparser_transforms.json")
+    return run_dir / "config.yml"
+
+
+@pytest.mark.parametrize("applied_scale", [1.0, 2.5])
+def test_dataset_frame_with_applied_transform_lands_where_the_ground_truth_says(tmp_path, applied_scale):
+    from nerfuser_ns import sampling, sim3
+
+    eyes = np.array([[np.cos(a) * 3, np.sin(a) * 3, 1.0 + 0.2 * (a % 1)] for a in np.linspace(0, 5, 9)])
+    world = sampling.look_at(eyes, np.zeros(3))
+    data, stored_to_world = _process_data_like_dataset(tmp_path / "data", world, applied_scale)
+    config = _run_on(tmp_path / "outputs", data)
+    data_to_nerf = runs.read_dataparser_transform(config)
+    nerf_cams = runs.training_cameras(config).camera_to_worlds.double().numpy()
+    stored = np.array([f["transform_matrix"] for f in json.loads((data / "transforms.json").read_text())["frames"]])
+    # the dataparser_transforms.json alone (what nerfstudio reports) does not map the stored poses onto them
+    meta = json.loads((config.parent / "dataparser_transforms.json").read_text())
+    naive = sim3.to_homogeneous(np.asarray(meta["transform"])) * np.array([meta["scale"]] * 3 + [1.0])[:, None]
+    assert not np.allclose(sim3.transform_poses(naive, stored)[:, :3, 3], nerf_cams[:, :3, 3], atol=1e-2)
+    # the stored poses, mapped by data_to_nerf, are the cameras the run trained with
+    np.testing.assert_allclose(sim3.transform_poses(data_to_nerf, stored)[:, :3, :4], nerf_cams, atol=1e-5)
+    # and through the ground truth, every NeRF-frame camera lands on its true world pose
+    nerf_to_world = stored_to_world @ sim3.invert_sim3(data_to_nerf)
+    np.testing.assert_allclose(sim3.transform_points(nerf_to_world, nerf_cams[:, :3, 3]), eyes, atol=1e-5)
+    R, _, s = sim3.decompose_sim3(data_to_nerf)
+    assert np.linalg.det(R) > 0 and s > 0
+
+
+def test_dataset_frame_needs_the_dataset(tmp_path):
+    from nerfuser_ns import sampling
+
+    world = sampling.look_at(np.array([[3.0, 0, 1], [0, 3.0, 1], [-3.0, 0, 1]]), np.zeros(3))
+    data, _ = _process_data_like_dataset(tmp_path / "data", world, 1.0)
+    config = _run_on(tmp_path / "outputs", data)
+    moved = tmp_path / "moved"
+    data.rename(moved)
+    with pytest.raises(runs.RunLoadError, match="cannot read the run's dataset"):
+        runs.read_dataparser_transform(config)
+    assert runs.read_dataparser_transform(config, data_override=moved).shape == (4, 4)
+    with pytest.raises(runs.RunLoadError, match="is missing"):
+        runs.training_cameras(config)
+    assert len(runs.training_cameras(config, data_override=moved)) >= 2
+
+
+def test_optimized_poses_match_nerfstudios_camera_optimizer():
+    from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+    from nerfstudio.cameras.cameras import Cameras
+
+    n = 4
+    optimizer = CameraOptimizerConfig(mode="SO3xR3").setup(num_cameras=n, device="cpu")
+    with torch.no_grad():
+        optimizer.pose_adjustment.copy_(torch.randn(n, 6, generator=torch.Generator().manual_seed(0)) * 0.05)
+    model = torch.nn.Module()
+    model.camera_optimizer = optimizer
+    c2w = runs.make_cameras(np.tile(np.eye(4)[:3], (n, 1, 1)) + 0.1, 10, 10, 5, 5, 10, 10).camera_to_worlds
+    ours = runs.optimized_poses(model, c2w)
+    for i in range(n):
+        cam = Cameras(camera_to_worlds=c2w[i : i + 1], fx=10.0, fy=10.0, cx=5.0, cy=5.0, metadata={"cam_idx": i})
+        torch.testing.assert_close(ours[i : i + 1], optimizer.apply_to_camera(cam), atol=1e-6, rtol=0)
+    assert not torch.allclose(ours, c2w)
+    optimizer.config.mode = "off"
+    assert torch.equal(runs.optimized_poses(model, c2w), c2w)
+
+
+def test_default_device_follows_torch(monkeypatch):
+    from nerfuser_ns.scripts.register import RegisterCommand
+    from nerfuser_ns.scripts.view import ViewCommand
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert runs.default_device() == "cpu" and RegisterCommand().device == "cpu"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert runs.default_device() == "cuda"
+    assert RegisterCommand().device == "cuda" and ViewCommand(path=Path("x")).device == "cuda"
