@@ -10,6 +10,7 @@ the environment variables NERFUSER_BLEND_METHOD / NERFUSER_GAMMA / NERFUSER_TAU)
 
 from __future__ import annotations
 
+import torch
 from nerfstudio.configs.base_config import LocalWriterConfig, LoggingConfig, MachineConfig, ViewerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
@@ -29,7 +30,7 @@ def nerfuser_config() -> NerfuserTrainerConfig:
         steps_per_save=1_000_000,
         save_only_latest_checkpoint=True,
         mixed_precision=False,
-        machine=MachineConfig(device_type="cpu", num_devices=1),
+        machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu", num_devices=1),
         pipeline=VanillaPipelineConfig(
             datamanager=NerfuserDataManagerConfig(),
             model=NerfuserModelConfig(),

@@ -25,8 +25,8 @@ import shutil
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
-from datetime import UTC, datetime
+from dataclasses import asdict, dataclass, field, replace
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal
 
@@ -49,6 +49,8 @@ SUGGESTION = (
     "render more poses (--sampling.num-poses), a larger radius (--sampling.radius) or the run's training poses "
     "(--sampling.source training|both)"
 )
+DEFAULT_RENDER_SIZE = (400, 300, 60.0)
+"""Render width, height and horizontal field of view when the reference run's training cameras are unknown."""
 
 
 class RegistrationError(ValueError):
@@ -71,8 +73,10 @@ class RegistrationFailed(RegistrationError):
 class PoseSamplingConfig:
     """Which views of each NeRF to render, in the NeRF's own frame."""
 
-    source: Literal["hemisphere", "training", "both"] = "hemisphere"
-    """Poses to render: the paper's hemisphere, the run's own training poses, or both."""
+    source: Literal["auto", "hemisphere", "training", "both"] = "auto"
+    """Poses to render: the paper's hemisphere, the run's own training poses, or both. ``auto``: the training poses
+    when every run's dataset is readable, then training + hemisphere, then the hemisphere alone if a choice does not
+    register; the hemisphere when a dataset is gone. What was chosen, and why, is printed and recorded."""
     num_poses: int = 32
     """Hemisphere poses per NeRF (the paper uses 32 on object scenes, 60 on ScanNet)."""
     radius: float = 1.0
@@ -88,18 +92,27 @@ class PoseSamplingConfig:
     random subset, for benchmarks over pose draws)."""
     max_training_poses: int = 32
     """At most this many training poses per NeRF."""
-    width: int = 400
-    """Rendered image width in pixels (SIFT needs texture at this size: 200x150 is too small for room scenes)."""
-    height: int = 300
-    """Rendered image height in pixels."""
-    fov_deg: float = 60.0
-    """Horizontal field of view of the renders (square pixels, centred principal point)."""
+    width: int | None = None
+    """Rendered image width in pixels (default: the reference run's training cameras, see ``max_size``; 400 when its
+    dataset is gone)."""
+    height: int | None = None
+    """Rendered image height in pixels (default: as ``width``; 300 when the reference run's dataset is gone)."""
+    fov_deg: float | None = None
+    """Horizontal field of view of the renders (square pixels, centred principal point). Default: the reference run's
+    training cameras (their focal lengths and principal point, scaled with the size); 60 when its dataset is gone."""
+    max_size: int = 400
+    """With the default size: the longer side of the renders at most this many pixels (the training image size when
+    smaller). SIFT needs texture at this size: 200x150 renders of a room gave too few features."""
     min_view_accumulation: float = 0.5
     """Views whose mean accumulation (opacity) is below this see mostly nothing and are left out of the SfM."""
 
     def intrinsics(self) -> Intrinsics:
-        fx, fy, cx, cy = intrinsics_from_fov(self.width, self.height, self.fov_deg)
-        return Intrinsics(fx, fy, cx, cy, self.width, self.height)
+        """The render intrinsics; unset values are :data:`DEFAULT_RENDER_SIZE`'s (:func:`resolve_sampling` sets them
+        from the runs' training cameras first)."""
+        width, height, fov = (d if v is None else v for v, d in zip((self.width, self.height, self.fov_deg),
+                                                                     DEFAULT_RENDER_SIZE, strict=True))  # fmt: skip
+        fx, fy, cx, cy = intrinsics_from_fov(width, height, fov)
+        return Intrinsics(fx, fy, cx, cy, width, height)
 
 
 @dataclass
@@ -781,6 +794,73 @@ def _validate_settings(config: RegistrationConfig) -> Intrinsics:
     return intr
 
 
+@dataclass
+class SamplingChoice:
+    """One pose-sampling setting to try, and why it was chosen."""
+
+    config: RegistrationConfig
+    """The registration settings with a concrete pose source and render camera."""
+    reason: str
+    """Why this source and camera (printed and recorded)."""
+
+
+def _training_cameras_available(renderer: Renderer) -> str | None:
+    """None when the renderer's training poses can be read, else the reason why not (one line)."""
+    try:
+        poses = renderer.training_poses()
+    except (RegistrationError, ValueError, OSError) as e:  # runs.RunLoadError is a ValueError
+        return str(e).splitlines()[0] if str(e) else type(e).__name__
+    return None if poses is not None and len(poses) > 0 else "it has no training poses"
+
+
+def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig, console: Console = CONSOLE
+                     ) -> list[SamplingChoice]:  # fmt: skip
+    """The pose-sampling settings to try, in order: the user's choice, or for ``source="auto"`` the training poses
+    (then training + hemisphere, then the hemisphere) when every run's dataset is readable, else the hemisphere.
+
+    The render camera defaults to the reference run's training cameras (their horizontal field of view and aspect,
+    the longer side at most ``max_size``); :data:`DEFAULT_RENDER_SIZE` when they are unknown.
+    """
+    sc = config.sampling
+    k = len(renderers)
+    missing = {}
+    if sc.source == "auto" or sc.width is None or sc.height is None or sc.fov_deg is None:
+        for i, r in enumerate(renderers):
+            why = _training_cameras_available(r)
+            if why is not None:
+                missing[i] = why
+    width, height, fov = sc.width, sc.height, sc.fov_deg
+    camera_note = "render size and field of view as given"
+    if width is None or height is None or fov is None:
+        ref = config.reference % k if -k <= config.reference < k else 0
+        intr = None if ref in missing else getattr(renderers[ref], "training_intrinsics", lambda: None)()
+        if intr is not None:
+            factor = min(1.0, sc.max_size / max(intr.width, intr.height))
+            auto_w, auto_h = max(8, round(intr.width * factor)), max(8, round(intr.height * factor))
+            auto_fov = math.degrees(2 * math.atan2(intr.width / 2, intr.fx))
+            camera_note = f"render camera from {renderers[ref].name}'s training cameras"
+        else:
+            auto_w, auto_h, auto_fov = DEFAULT_RENDER_SIZE
+            camera_note = "render camera 400x300 at 60 deg (the reference run's training cameras are unknown)"
+        width = auto_w if width is None else width
+        height = auto_h if height is None else height
+        fov = auto_fov if fov is None else fov
+    if sc.source != "auto":
+        sources = [(sc.source, "as given")]
+    elif missing:
+        i, why = next(iter(missing.items()))
+        sources = [("hemisphere", f"training poses unavailable ({renderers[i].name}: {why})")]
+    else:
+        sources = [("training", "every run's dataset is readable"),
+                   ("both", "the training poses alone did not register"),
+                   ("hemisphere", "neither the training poses nor training + hemisphere registered")]  # fmt: skip
+    out = []
+    for source, why in sources:
+        sampling = replace(sc, source=source, width=int(width), height=int(height), fov_deg=float(fov))
+        out.append(SamplingChoice(replace(config, sampling=sampling), f"{why}; {camera_note}"))
+    return out
+
+
 def register(
     renderers: Sequence[Renderer],
     config: RegistrationConfig | None = None,
@@ -791,9 +871,44 @@ def register(
     """Register N >= 2 renderers; returns the registration record (what :func:`write_registration` stores).
 
     ``gt_nerf_to_world[i]`` (optional) maps NeRF i's frame to a common ground-truth world; errors are then reported.
-    Raises :class:`RegistrationError` (one line, naming the NeRF) when the result cannot be trusted.
+    With ``sampling.source="auto"`` (the default) the pose sources of :func:`resolve_sampling` are tried in order until
+    one registers; each choice and each fallback is printed. Raises :class:`RegistrationError` (one line, naming the
+    NeRF) when the result cannot be trusted.
     """
     config = config or RegistrationConfig()
+    if len(renderers) < 2:
+        raise RegistrationError(f"registration needs at least 2 NeRFs, got {len(renderers)}")
+    choices = resolve_sampling(renderers, config, console)
+    for choice in choices:
+        _validate_settings(choice.config)
+    tried = []
+    for n, choice in enumerate(choices):
+        sc = choice.config.sampling
+        console.print(f"pose sampling: [bold]{sc.source}[/] ({choice.reason}), renders {sc.width}x{sc.height} at "
+                      f"{sc.fov_deg:.1f} deg")  # fmt: skip
+        try:
+            record = _register_once(renderers, choice.config, work_dir, gt_nerf_to_world, console)
+        except RegistrationError as e:
+            if n + 1 == len(choices):
+                raise
+            reason = str(e).splitlines()[0]
+            tried.append({"source": sc.source, "error": reason})
+            console.print(f"[yellow]{sc.source} poses did not register: {reason}[/]")
+            continue
+        record["sampling_choice"] = {"requested": config.sampling.source, "source": sc.source,
+                                     "reason": choice.reason, "tried_before": tried}  # fmt: skip
+        return record
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _register_once(
+    renderers: Sequence[Renderer],
+    config: RegistrationConfig,
+    work_dir: Path | str,
+    gt_nerf_to_world: Sequence[np.ndarray] | None,
+    console: Console,
+) -> dict:
+    """One registration with concrete pose-sampling settings (see :func:`register`)."""
     work_dir = Path(work_dir)
     k = len(renderers)
     names = [r.name for r in renderers]
@@ -954,7 +1069,7 @@ def register(
     record = {
         "format_version": FORMAT_VERSION,
         "kind": "nerfuser_registration",
-        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "reference": {"index": ref, "name": names[ref]},
         "conventions": {
             "sim3": "T = [[s R, t], [0, 0, 0, 1]]; T_to_reference maps points of the NeRF's frame into the "

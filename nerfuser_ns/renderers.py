@@ -12,6 +12,7 @@ Poses are camera-to-world 4x4 in nerfstudio's OpenGL camera convention, intrinsi
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from dataclasses import dataclass
@@ -60,6 +61,10 @@ class Renderer(Protocol):
         """Camera-to-world poses the renderer was trained from, in its own frame (None if unknown)."""
         ...
 
+    def training_intrinsics(self) -> Intrinsics | None:
+        """Typical pinhole intrinsics of the training cameras (None if unknown): the default render camera."""
+        ...
+
 
 def _as_4x4(c2w: np.ndarray) -> np.ndarray:
     c2w = np.asarray(c2w, dtype=np.float64)
@@ -95,6 +100,7 @@ class SceneFrameRenderer:
         self._training = None if training_c2w is None else _as_4x4(training_c2w)
         self.supersample = supersample
         self._key = key
+        self._training_intrinsics: Intrinsics | None = None
 
     @classmethod
     def from_layout(
@@ -115,7 +121,9 @@ class SceneFrameRenderer:
         frame_to_world = compose(cap.capture_to_world, frame_to_capture)
         training = transform_poses(invert_sim3(frame_to_capture), cap.c2w_capture)
         key = json.dumps({"layout": layout.layout, "params": layout.params}, sort_keys=True, default=str)
-        return cls(layout.scene, frame_to_world, capture, training, supersample, key=key)
+        renderer = cls(layout.scene, frame_to_world, capture, training, supersample, key=key)
+        renderer._training_intrinsics = cap.intrinsics
+        return renderer
 
     def cache_key(self) -> str:
         h = hashlib.sha256(self._key.encode())
@@ -143,6 +151,9 @@ class SceneFrameRenderer:
     def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
         return None if self._training is None else self._training.copy()
 
+    def training_intrinsics(self) -> Intrinsics | None:
+        return self._training_intrinsics
+
 
 class NerfstudioRenderer:
     """A trained nerfstudio run, rebuilt from its own config.yml on first use.
@@ -164,25 +175,40 @@ class NerfstudioRenderer:
         self.config_path = runs.resolve_config_path(config_path)
         config = runs.read_config(self.config_path)
         self.checkpoint_path, self.step = runs.find_checkpoint(self.config_path, config)
-        self.data_to_nerf = runs.read_dataparser_transform(self.config_path)
         self.name = name or str(config_path)
         self.device = device
         self.data_override = data_override
         self.eval_num_rays_per_chunk = eval_num_rays_per_chunk
         self._loaded = None
+        self._training_cameras = None
 
-    def _load(self, with_data: bool = False):
+    @functools.cached_property
+    def data_to_nerf(self) -> np.ndarray | None:
+        """SIM(3) from the run's stored dataset frame to its NeRF frame (reads the dataset: see runs)."""
         from nerfuser_ns import runs
 
-        if self._loaded is None or (with_data and self._loaded.pipeline is None):
+        return runs.read_dataparser_transform(self.config_path, self.data_override)
+
+    def _load(self):
+        from nerfuser_ns import runs
+
+        if self._loaded is None:
             self._loaded = runs.load_run(
                 self.config_path,
                 device=self.device,
-                with_data=with_data,
                 data_override=self.data_override,
                 eval_num_rays_per_chunk=self.eval_num_rays_per_chunk,
             )
         return self._loaded
+
+    def training_cameras(self):  # noqa: ANN201 - nerfstudio Cameras (imported lazily)
+        """The run's training cameras in its NeRF frame, parsed from its dataset (``runs.RunLoadError`` when the
+        dataset cannot be read)."""
+        from nerfuser_ns import runs
+
+        if self._training_cameras is None:
+            self._training_cameras = runs.training_cameras(self.config_path, self.data_override)
+        return self._training_cameras
 
     def cache_key(self) -> str:
         stat = self.checkpoint_path.stat()
@@ -204,6 +230,14 @@ class NerfstudioRenderer:
         return RenderBatch(rgb, acc, out["depth"][..., 0].numpy().astype(np.float32) if depth else None)
 
     def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
-        loaded = self._load(with_data=True)
-        cams = loaded.pipeline.datamanager.train_dataset.cameras
-        return _as_4x4(cams.camera_to_worlds.detach().cpu().numpy())
+        """The training poses as the run finally saw them: with its camera optimiser's learned corrections (stock
+        nerfacto optimises poses), so the renders show what the run learned best."""
+        from nerfuser_ns import runs
+
+        c2w = self.training_cameras().camera_to_worlds
+        return _as_4x4(runs.optimized_poses(self._load().model, c2w).detach().cpu().numpy())
+
+    def training_intrinsics(self) -> Intrinsics | None:
+        cams = self.training_cameras()
+        med = [float(x.float().median()) for x in (cams.fx, cams.fy, cams.cx, cams.cy, cams.width, cams.height)]
+        return Intrinsics(med[0], med[1], med[2], med[3], int(round(med[4])), int(round(med[5])))

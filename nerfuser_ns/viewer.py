@@ -574,7 +574,7 @@ def _is_run(path: Path) -> bool:
 
 
 def load_fused_pipeline(
-    path: Path | str, device: str = "cpu", register_if_missing: bool = True
+    path: Path | str, device: str | None = None, register_if_missing: bool = True
 ) -> tuple[Any, Any, int, Path | None]:
     """``(config, pipeline, step, run folder)`` of a fused run (``ns-train nerfuser``'s config.yml or its folder) or
     of a fusion spec (a JSON file, a folder holding fusion.json, or a registration file), in eval mode.
@@ -587,6 +587,7 @@ def load_fused_pipeline(
     from nerfuser_ns import runs
     from nerfuser_ns.model import NerfuserModelConfig
 
+    device = device or runs.default_device()
     path = Path(path).expanduser()
     if not path.exists():
         raise ViewerSetupError(f"{path}: no such file or folder; pass a fused run's config.yml or a fusion spec")
@@ -618,7 +619,7 @@ def start_viewer(
     source: Path | str,
     host: str = "127.0.0.1",
     port: int | None = None,
-    device: str = "cpu",
+    device: str | None = None,
     max_res: int | None = None,
     register_if_missing: bool = True,
 ) -> RunningViewer:

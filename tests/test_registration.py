@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from rich.console import Console
 
 from nerfuser_ns import registration as reg
 from nerfuser_ns import runs, scenes, sim3
@@ -28,7 +29,9 @@ W, H = 240, 180  # smallest size at which SIFT finds enough on these scenes (160
 
 
 def small_config(**kw) -> reg.RegistrationConfig:
-    sampling = reg.PoseSamplingConfig(num_poses=kw.pop("num_poses", 20), width=W, height=H, **kw.pop("sampling", {}))
+    # the paper's hemisphere at a fixed camera (the automatic choice has tests of its own)
+    sampling_kw = {"source": "hemisphere", "fov_deg": 60.0, **kw.pop("sampling", {})}
+    sampling = reg.PoseSamplingConfig(num_poses=kw.pop("num_poses", 20), width=W, height=H, **sampling_kw)
     return reg.RegistrationConfig(sampling=sampling, self_check_views=kw.pop("self_check_views", 2), **kw)
 
 
@@ -272,6 +275,60 @@ def test_pose_guided_pairs_are_linear_in_the_image_count(tmp_path):
 # Self-check
 
 
+def test_automatic_sampling_uses_training_poses_when_datasets_are_readable(oc_layout, oc_renderers):
+    choices = reg.resolve_sampling(oc_renderers, reg.RegistrationConfig())
+    assert [c.config.sampling.source for c in choices] == ["training", "both", "hemisphere"]
+    # the render camera is the training cameras' (field of view, aspect), the longer side capped at max_size
+    intr = oc_layout.captures[0].intrinsics
+    sc = choices[0].config.sampling
+    assert (sc.width, sc.height) == (intr.width, intr.height)  # 240x180 is under the 400 px cap
+    assert sc.fov_deg == pytest.approx(65.0, abs=1e-6)
+    capped = reg.resolve_sampling(oc_renderers, reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(max_size=120)))
+    assert (capped[0].config.sampling.width, capped[0].config.sampling.height) == (120, 90)
+    assert capped[0].config.sampling.intrinsics().fx == pytest.approx(intr.fx / 2)
+    # an explicit choice is kept as given
+    given = reg.resolve_sampling(oc_renderers, small_config())
+    assert len(given) == 1 and given[0].config.sampling.source == "hemisphere"
+    assert (given[0].config.sampling.width, given[0].config.sampling.fov_deg) == (W, 60.0)
+
+
+def test_automatic_sampling_without_datasets_uses_the_hemisphere(oc_renderers):
+    blind = [MirroredRenderer(r) for r in oc_renderers]  # no training poses, no training cameras
+    choices = reg.resolve_sampling(blind, reg.RegistrationConfig())
+    assert [c.config.sampling.source for c in choices] == ["hemisphere"]
+    assert "training poses unavailable" in choices[0].reason
+    sc = choices[0].config.sampling
+    assert (sc.width, sc.height, sc.fov_deg) == reg.DEFAULT_RENDER_SIZE
+    # one run without its dataset is enough to need the hemisphere for all
+    mixed = reg.resolve_sampling([oc_renderers[0], blind[1]], reg.RegistrationConfig())
+    assert [c.config.sampling.source for c in mixed] == ["hemisphere"]
+
+
+def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypatch):
+    tried = []
+
+    def once(renderers, config, work_dir, gt, console):
+        tried.append(config.sampling.source)
+        if config.sampling.source == "training":
+            raise reg.RegistrationError("a: its views form a separate SfM model")
+        return {"nerfs": []}
+
+    monkeypatch.setattr(reg, "_register_once", once)
+    console = Console(record=True, width=200)
+    record = reg.register(oc_renderers, reg.RegistrationConfig(), work, console=console)
+    assert tried == ["training", "both"]
+    assert record["sampling_choice"]["source"] == "both"
+    assert record["sampling_choice"]["tried_before"] == [
+        {"source": "training", "error": "a: its views form a separate SfM model"}]
+    text = console.export_text()
+    for line in ("pose sampling: training", "training poses did not register", "pose sampling: both"):
+        assert line in text, line
+    # every choice failing: the last error is the one raised
+    monkeypatch.setattr(reg, "_register_once", lambda *a: (_ for _ in ()).throw(reg.RegistrationError("no")))
+    with pytest.raises(reg.RegistrationError, match="no"):
+        reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
+
+
 def test_ncc_basics():
     rng = np.random.default_rng(0)
     a = rng.random((32, 48, 3)).astype(np.float32)
@@ -433,8 +490,8 @@ def test_real_command_on_tiny_nerfacto_runs(tiny_runs, tmp_path, monkeypatch, ca
         assert_one_line_error(exit_info.value.code, out, err)
         assert any(s in err for s in ("views registered", "reconstructed nothing", "see enough", "self-check")), err
         assert str(first) in err or str(second) in err or "reconstructed nothing" in err
-    # the renders are kept for a re-run
-    assert len(list((tmp_path / "registration_work" / "renders").glob("*/poses.json"))) == 2
+    # the renders are kept for a re-run (one folder per NeRF and pose source the automatic choice tried)
+    assert len(list((tmp_path / "registration_work" / "renders").glob("*/poses.json"))) in (2, 4, 6)
 
 
 def test_run_without_checkpoints(tiny_runs, tmp_path, capsys):

@@ -235,7 +235,7 @@ NUM_POSES = 6
 def fusion_spec(tmp_path_factory) -> Path:
     """Spec of the two demo NeRFs: a registration file whose render folders hold 6 views each, 3 test views."""
     root = tmp_path_factory.mktemp("fusion")
-    sampling = registration.PoseSamplingConfig(num_poses=NUM_POSES, width=8, height=6)
+    sampling = registration.PoseSamplingConfig(source="hemisphere", num_poses=NUM_POSES, width=8, height=6)
     nerfs = []
     for name, config, T in zip(("a", "b"), RUNS, TRANSFORMS, strict=True):
         renderer = PosesOnly(name)
@@ -430,7 +430,8 @@ def test_scene_groups_show_how_the_scene_was_put_together(session):
     assert len(reg) == 2 * NUM_POSES
     cams_b = scene.nerfs[1].registration_cameras
     assert cams_b.kept.tolist() == [True] * (NUM_POSES - 1) + [False]
-    poses_b = registration.sample_poses(PosesOnly("b"), registration.PoseSamplingConfig(num_poses=NUM_POSES))[0]
+    hemisphere = registration.PoseSamplingConfig(source="hemisphere", num_poses=NUM_POSES)
+    poses_b = registration.sample_poses(PosesOnly("b"), hemisphere)[0]
     np.testing.assert_allclose(cams_b.c2w, sim3.transform_poses(TRANSFORMS[1], poses_b), atol=1e-6)
     np.testing.assert_allclose(reg[NUM_POSES].position, cams_b.c2w[0][:3, 3] * VISER_SCALE, atol=1e-4)
     assert len(control.groups["test_cameras"]) == 3
@@ -548,6 +549,21 @@ def _get(url: str) -> str | None:
         return urllib.request.urlopen(url, timeout=2).read().decode()
     except OSError:
         return None
+
+
+def test_viewer_opens_a_registration_file_without_test_images(fusion_spec):
+    """The common case of a user fusing their own runs: no test images. nerfstudio's viewer reads every attribute
+    of the pipeline; the datamanager's eval loader must not raise there."""
+    running = start_viewer(fusion_spec.parent / "registration.json", host="127.0.0.1", port=free_port())
+    try:
+        assert running.viewer is not None and _get(running.url) is not None
+        datamanager = running.pipeline.datamanager
+        assert datamanager.eval_dataset is None
+        with pytest.raises(RuntimeError, match="no test images"):
+            len(datamanager.fixed_indices_eval_dataloader)  # ns-eval still gets the clear message
+    finally:
+        running.stop()
+    assert port_closed(running.port)
 
 
 def test_bad_input_is_one_line(tmp_path):

@@ -31,6 +31,7 @@ from nerfuser_ns.registration import (
     register,
     write_registration,
 )
+from nerfuser_ns.runs import default_device
 
 CONSOLE = Console(width=120)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -48,9 +49,9 @@ class RegisterCommand(RegistrationConfig):
     """Folder for renders and SfM files, reused by later runs with the same inputs (default: <output>_work)."""
     data: list[Path] = field(default_factory=list)
     """Dataset folder of each run, in --configs order, for runs whose config.yml points at a dataset that has moved
-    (only --sampling.source training|both reads it: the training poses)."""
-    device: str = "cpu"
-    """Torch device the runs render on."""
+    (the training poses and the default render camera are read from it)."""
+    device: str = field(default_factory=default_device)
+    """Torch device the runs render on (default: cuda when torch sees a GPU, else cpu)."""
     eval_num_rays_per_chunk: int | None = None
     """Rays per forward pass when rendering (default: each run's own)."""
     ground_truth: Path | None = None

@@ -16,13 +16,14 @@ import os
 import signal
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import tyro
 from rich.console import Console
 
 from nerfuser_ns.blending import BlendMethod
+from nerfuser_ns.runs import default_device
 
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
 
@@ -38,8 +39,8 @@ class ViewCommand:
     """Interface to serve on (0.0.0.0: every interface, for other machines)."""
     port: int | None = None
     """Port to serve on (default: 7007, or the next free one)."""
-    device: str = "cpu"
-    """Torch device the NeRFs render on."""
+    device: str = field(default_factory=default_device)
+    """Torch device the NeRFs render on (default: cuda when torch sees a GPU, else cpu)."""
     max_res: int | None = None
     """The panel's initial "Max res" (default: 256 on the CPU, nerfstudio's 512 otherwise)."""
     blend_method: BlendMethod | None = None
