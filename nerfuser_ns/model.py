@@ -338,7 +338,12 @@ class NerfuserModel(Model):
             raise ValueError("nerfuser: no sub-models to fuse")
         self.nerf_names = [str(e[0]) for e in entries]
         self.nerfs = _FrozenModels([e[1] for e in entries])
-        self.adapters = [make_adapter(m) for m in self.nerfs.models]
+        self.adapters = []
+        for name, m in zip(self.nerf_names, self.nerfs.models, strict=True):
+            try:
+                self.adapters.append(make_adapter(m))
+            except TypeError as e:  # name the run: with several runs the model class alone does not say which
+                raise TypeError(f"run {name!r}: {e}; its ray samples cannot be merged with the others'") from None
         T = torch.tensor(np.stack([np.asarray(e[2], dtype=np.float64) for e in entries]), dtype=torch.float64)
         scales = torch.linalg.det(T[:, :3, :3]).pow(1.0 / 3.0)
         T_inv = torch.linalg.inv(T)

@@ -58,11 +58,11 @@ class Renderer(Protocol):
         ...
 
     def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
-        """Camera-to-world poses the renderer was trained from, in its own frame (None if unknown)."""
-        ...
+        """Camera-to-world poses the renderer was trained from, in its own frame (None if unknown).
 
-    def training_intrinsics(self) -> Intrinsics | None:
-        """Typical pinhole intrinsics of the training cameras (None if unknown): the default render camera."""
+        Renderers may also have ``training_intrinsics() -> Intrinsics | None``, the typical pinhole intrinsics of
+        their training cameras: registration's default render camera (both adapters below do).
+        """
         ...
 
 

@@ -390,3 +390,13 @@ def test_ns_render_renders_every_method(fused_run, tmp_path):
     for name in names:
         files = sorted((tmp_path / "r" / "test" / name).glob("*"))
         assert len(files) == 2, name
+
+
+def test_a_run_whose_samples_cannot_be_merged_is_named(trained):
+    """A method without a NeRF adapter (e.g. an instant-ngp run beside a nerfacto one): one error naming the run."""
+
+    class OtherModel(torch.nn.Module):
+        pass
+
+    with pytest.raises(TypeError, match="run 'ngp': nerfuser: no adapter for OtherModel"):
+        fuse_models([("a", trained.model, np.eye(4)), ("ngp", OtherModel(), np.eye(4))])
