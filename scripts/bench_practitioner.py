@@ -1,0 +1,358 @@
+"""The practitioner's path, measured from images in: COLMAP-posed captures, stock nerfacto, default options.
+
+Per case (a generated scene and seed), as a user would do it:
+
+1. ``scene``: render each capture of the scene to a plain image folder (no poses, no transforms.json), and the
+   world-posed test views (the ground truth ``ns-eval`` scores against).
+2. ``colmap``: ``ns-process-data images`` on each capture separately (Debian's ``colmap``, CPU SIFT, exhaustive
+   matching: the default vocabulary-tree matcher downloads its tree). Each capture gets its own COLMAP frame and scale.
+3. ``train``: stock ``ns-train nerfacto`` on each dataset; sizes reduced for the CPU through ns-train's own options
+   (:data:`TRAIN_OPTIONS`), camera optimiser and datamanager left at nerfacto's defaults.
+4. ``register``: ``ns-nerfuser-register --configs ...`` and nothing else (every default).
+5. ``fuse``: ``ns-train nerfuser`` on a fusion spec naming the runs, the registration and the test views;
+   ``ns-eval`` (every blend method scored in one pass), ``ns-render dataset``.
+6. ``score``: ground truth. Each capture's COLMAP frame (transforms.json's stored poses) is tied to the world by a
+   SIM(3) fitted to the true camera centres of the views COLMAP registered; composed with each run's dataparser
+   transform (``applied_transform`` included) it gives every NeRF's true frame. r/t/s errors as the paper defines
+   them, COLMAP's own pose noise beside them, the blend table from ``ns-eval``'s JSON, the time of every step.
+
+Every stage is cached in ``<root>/<case>/`` (trained runs are never retrained unless deleted), so re-runs only redo
+what is missing. Thresholds and defaults are the tools' own; nothing here is tuned per case.
+
+Example::
+
+    python scripts/bench_practitioner.py --cases object-centric:1 drive:1 street:1 --root outputs/practitioner
+    python scripts/bench_practitioner.py --report-only --cases ... --report reports/bench_practitioner.md
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import tyro
+from PIL import Image
+from rich.console import Console
+
+from nerfuser_ns import runs, sim3
+from nerfuser_ns.data import write_fusion_spec
+from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.scenes import make_layout, render_camera, to_uint8, write_capture
+
+CONSOLE = Console(width=120)
+BIN = Path(sys.executable).parent
+
+TRAIN_OPTIONS = [
+    "--mixed-precision", "False",
+    "--machine.device-type", "cpu",
+    "--pipeline.model.implementation", "torch",
+    "--pipeline.datamanager.train-num-rays-per-batch", "1024",
+    "--pipeline.model.log2-hashmap-size", "15",
+    "--pipeline.model.hidden-dim", "32",
+    "--pipeline.model.hidden-dim-color", "32",
+    "--pipeline.model.num-proposal-samples-per-ray", "64", "32",
+    "--pipeline.model.num-nerf-samples-per-ray", "32",
+    "--pipeline.model.eval-num-rays-per-chunk", "8192",
+    "--steps-per-eval-image", "1000000",
+    "--steps-per-eval-batch", "1000000",
+    "--steps-per-eval-all-images", "1000000",
+    "--vis", "tensorboard",
+]  # fmt: skip
+"""CPU-sized nerfacto through ns-train's own options (hash grid, MLP widths and samples as our CPU preset);
+everything else (camera optimiser, parallel datamanager, scene contraction, losses) is stock nerfacto."""
+
+BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
+                 ("idw_sample", "IDW-Sample")]  # fmt: skip
+
+
+@dataclass
+class BenchPractitioner:
+    """Images in, registration and blend out, with every tool at its defaults."""
+
+    cases: list[str] = field(default_factory=lambda: ["object-centric:1", "drive:1", "street:1"])
+    """Cases as layout:seed (layouts: object-centric, street, drive)."""
+    root: Path = Path("outputs/practitioner")
+    """Work folder (one sub-folder per case; every stage cached there)."""
+    width: int = 320
+    """Capture image width (the same for every layout; SIFT needs more than the 192 px of our training scenes)."""
+    height: int = 240
+    """Capture image height."""
+    num_captures: int = 2
+    """Captures of street and drive scenes (object-centric always has 2)."""
+    max_num_iterations: int = 2000
+    """nerfacto steps per capture."""
+    stages: list[str] = field(default_factory=lambda: ["scene", "colmap", "train", "register", "fuse"])
+    """Stages to run (each skipped when its output exists)."""
+    report: Path | None = None
+    """Write the markdown report here (after the stages)."""
+    report_only: bool = False
+    """Only collect the cases' records into the report."""
+
+
+def _run(cmd: list[str], log: Path, cwd: Path | None = None) -> float:
+    """Run a tool as a user would, its output in ``log``; the seconds it took. Raises with the log's tail."""
+    CONSOLE.print(f"[dim]$ {' '.join(cmd)}[/]")
+    start = time.perf_counter()
+    with open(log, "w") as f:
+        env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=cwd, env=env)
+    seconds = time.perf_counter() - start
+    if proc.returncode != 0:
+        tail = log.read_text(errors="replace").strip().splitlines()[-15:]
+        raise RuntimeError(f"{cmd[0]} failed (exit {proc.returncode}), see {log}:\n" + "\n".join(tail))
+    return seconds
+
+
+def _layout(case: str, cfg: BenchPractitioner):
+    name, seed = case.rsplit(":", 1)
+    params = dict(seed=int(seed), num_views=64, num_test_views=12, width=cfg.width, height=cfg.height)
+    if name in ("street", "drive"):
+        params["num_captures"] = cfg.num_captures
+    if name == "drive":
+        params.update(num_views=96, num_test_views=12)
+    return make_layout(name, **params)
+
+
+def _times(case_dir: Path) -> dict:
+    path = case_dir / "times.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _add_time(case_dir: Path, key: str, seconds: float) -> None:
+    times = _times(case_dir)
+    times[key] = round(seconds, 1)
+    write_text_atomic(case_dir / "times.json", json.dumps(times, indent=2) + "\n")
+
+
+def stage_scene(layout, case_dir: Path) -> None:
+    for cap in layout.captures:
+        folder = case_dir / "images" / cap.name
+        if (folder / ".done").is_file():
+            continue
+        start = time.perf_counter()
+        folder.mkdir(parents=True, exist_ok=True)
+        for i in range(cap.num_views):
+            out = render_camera(layout.scene, cap.c2w_world[i], cap.intrinsics, supersample=2)
+            Image.fromarray(to_uint8(out.rgb)).save(folder / f"view_{i:05d}.png")
+        (folder / ".done").write_text("")
+        _add_time(case_dir, f"images {cap.name}", time.perf_counter() - start)
+    test = case_dir / "test"
+    if not (test / "transforms.json").is_file():
+        write_capture(layout, layout.test, test, world_frame=True, supersample=2)
+
+
+def stage_colmap(layout, case_dir: Path) -> None:
+    for cap in layout.captures:
+        out = case_dir / "datasets" / cap.name
+        if (out / "transforms.json").is_file():
+            continue
+        cmd = [str(BIN / "ns-process-data"), "images", "--data", str(case_dir / "images" / cap.name),
+               "--output-dir", str(out), "--no-gpu", "--matching-method", "exhaustive", "--num-downscales", "0"]
+        seconds = _run(cmd, case_dir / f"colmap_{cap.name}.log")
+        if not (out / "transforms.json").is_file():
+            raise RuntimeError(f"ns-process-data wrote no transforms.json for {cap.name}: COLMAP posed nothing")
+        _add_time(case_dir, f"colmap {cap.name}", seconds)
+
+
+def run_config(case_dir: Path, capture: str) -> Path:
+    return case_dir / "runs" / capture / "nerfacto" / "bench" / "config.yml"
+
+
+def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
+    for cap in layout.captures:
+        config = run_config(case_dir, cap.name)
+        if config.is_file() and list((config.parent / "nerfstudio_models").glob("step-*.ckpt")):
+            continue
+        cmd = [str(BIN / "ns-train"), "nerfacto", "--data", str(case_dir / "datasets" / cap.name),
+               "--output-dir", str(case_dir / "runs"), "--experiment-name", cap.name, "--timestamp", "bench",
+               "--max-num-iterations", str(cfg.max_num_iterations), "--steps-per-save", str(cfg.max_num_iterations),
+               *TRAIN_OPTIONS]  # fmt: skip
+        seconds = _run(cmd, case_dir / f"train_{cap.name}.log")
+        _add_time(case_dir, f"train {cap.name}", seconds)
+
+
+def stage_register(layout, case_dir: Path) -> None:
+    output = case_dir / "registration.json"
+    if output.is_file():
+        return
+    cmd = [str(BIN / "ns-nerfuser-register"), "--configs",
+           *[str(run_config(case_dir, c.name)) for c in layout.captures], "--output", str(output)]  # fmt: skip
+    log = case_dir / "register.log"
+    try:
+        seconds = _run(cmd, log)
+    except RuntimeError as e:
+        # A refused registration is a result (a failure), not a crash of the benchmark.
+        CONSOLE.print(f"[red]{case_dir.name}: registration failed[/]: {str(e).splitlines()[-1]}")
+        _add_time(case_dir, "register", 0.0)
+        write_text_atomic(case_dir / "register_failed.txt", str(e) + "\n")
+        return
+    _add_time(case_dir, "register", seconds)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Ground truth
+
+
+def _frame_index(file_path: str) -> int:
+    """ns-process-data renames the sorted inputs frame_00001.png...; our inputs are view_<i>.png in order."""
+    return int(Path(file_path).stem.split("_")[-1]) - 1
+
+
+def capture_ground_truth(layout, case_dir: Path) -> list[dict]:
+    """Per capture: the SIM(3) tying its stored (transforms.json) frame to the world, COLMAP's pose noise, and the
+    true NeRF-frame -> world map of its run."""
+    out = []
+    for cap in layout.captures:
+        meta = json.loads((case_dir / "datasets" / cap.name / "transforms.json").read_text())
+        idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
+        stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
+        true = cap.c2w_world[idx]
+        est = sim3.estimate_sim3_umeyama(stored, true, robust=False)
+        data_to_world = est.T
+        mapped = sim3.transform_poses(data_to_world, stored)
+        rot_err = sim3.rotation_angle_deg(np.swapaxes(mapped[:, :3, :3], -1, -2) @ true[:, :3, :3])
+        centre_err = np.linalg.norm(mapped[:, :3, 3] - true[:, :3, 3], axis=-1)
+        world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
+        data_to_nerf = runs.read_dataparser_transform(run_config(case_dir, cap.name))
+        out.append({
+            "capture": cap.name,
+            "views": cap.num_views,
+            "posed_by_colmap": len(idx),
+            "colmap_rot_err_deg_median": float(np.median(rot_err)),
+            "colmap_centre_err_median": float(np.median(centre_err) / world_scale),
+            "nerf_to_world": sim3.compose(data_to_world, sim3.invert_sim3(data_to_nerf)),
+        })
+    return out
+
+
+def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
+    if not (case_dir / "registration.json").is_file():
+        return
+    eval_json = case_dir / "eval.json"
+    if eval_json.is_file():
+        return
+    world_to_ref = sim3.invert_sim3(gt[0]["nerf_to_world"])
+    spec = write_fusion_spec(
+        case_dir / "fusion.json", [run_config(case_dir, c.name) for c in layout.captures],
+        registration="registration.json", test_data="test", test_to_common=world_to_ref,
+    )  # fmt: skip
+    fused_dir = case_dir / "fused"
+    seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir", str(fused_dir),
+                    "--experiment-name", "fused", "--timestamp", "bench",
+                    "--pipeline.model.render-all-methods", "True"], case_dir / "fuse_train.log")  # fmt: skip
+    _add_time(case_dir, "ns-train nerfuser", seconds)
+    fused_config = fused_dir / "fused" / "nerfuser" / "bench" / "config.yml"
+    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(fused_config), "--output-path", str(eval_json)],
+                   case_dir / "eval.log")  # fmt: skip
+    _add_time(case_dir, "ns-eval", seconds)
+    renders = case_dir / "renders"
+    seconds = _run([str(BIN / "ns-render"), "dataset", "--load-config", str(fused_config), "--output-path",
+                    str(renders), "--split", "test", "--rendered-output-names", "rgb"], case_dir / "render.log")
+    _add_time(case_dir, "ns-render dataset", seconds)
+
+
+def score_case(layout, case_dir: Path) -> dict:
+    gt = capture_ground_truth(layout, case_dir)
+    record: dict = {"case": case_dir.name, "captures": [{k: v for k, v in g.items() if k != "nerf_to_world"}
+                                                         for g in gt]}  # fmt: skip
+    reg_path = case_dir / "registration.json"
+    if reg_path.is_file():
+        reg = json.loads(reg_path.read_text())
+        ref = reg["reference"]["index"]
+        errors = []
+        for i, n in enumerate(reg["nerfs"]):
+            if i == ref:
+                continue
+            T_true = sim3.compose(sim3.invert_sim3(gt[ref]["nerf_to_world"]), gt[i]["nerf_to_world"])
+            e = sim3.sim3_errors(np.asarray(n["T_to_reference"]), T_true)
+            errors.append({"nerf": n["name"], "r_err_deg": float(e.r_err_deg), "t_err": float(e.t_err),
+                           "s_err": float(e.s_err), "failure": bool(e.is_failure())})
+        record["registration"] = {"errors": errors, "sampling_choice": reg.get("sampling_choice"),
+                                  "timings_s": reg.get("timings_s")}  # fmt: skip
+    else:
+        record["registration"] = {"errors": None, "refused": (case_dir / "register_failed.txt").is_file()}
+    eval_json = case_dir / "eval.json"
+    if eval_json.is_file():
+        results = json.loads(eval_json.read_text())["results"]
+        record["blend_psnr"] = {k: results.get(f"psnr_{k}", results.get("psnr") if k == "idw_sample" else None)
+                                for k, _ in BLEND_COLUMNS}  # fmt: skip
+    record["times_s"] = _times(case_dir)
+    return record
+
+
+def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> None:
+    lines = ["# The practitioner's path: images in, registration and blend out (defaults only)", "",
+             "Command: `python scripts/bench_practitioner.py " + " ".join(sys.argv[1:]) + "`", ""]  # fmt: skip
+    lines += ["## Registration (every default of `ns-nerfuser-register`)", "",
+              "| case | NeRF | r_err (deg) | t_err | s_err | ok | COLMAP rot err (deg, median per capture) | "
+              "COLMAP centre err (median, / capture radius) | posed / views |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    all_err = []
+    for r in records:
+        colmap = r["captures"]
+        col = ", ".join(f"{c['colmap_rot_err_deg_median']:.3f}" for c in colmap)
+        cen = ", ".join(f"{c['colmap_centre_err_median']:.4f}" for c in colmap)
+        posed = ", ".join(f"{c['posed_by_colmap']}/{c['views']}" for c in colmap)
+        errs = r["registration"]["errors"]
+        if errs is None:
+            lines.append(f"| {r['case']} | - | refused | | | FAIL | {col} | {cen} | {posed} |")
+            all_err.append(None)
+            continue
+        for e in errs:
+            lines.append(f"| {r['case']} | {e['nerf']} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | {e['s_err']:.5f} | "
+                         f"{'FAIL' if e['failure'] else 'ok'} | {col} | {cen} | {posed} |")
+            all_err.append(e)
+    lines += ["", "## Blending (PSNR from `ns-eval`'s JSON, estimated registration, world-posed test views)", "",
+              "| case | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
+              "| --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
+    for r in records:
+        b = r.get("blend_psnr")
+        if b:
+            lines.append(f"| {r['case']} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
+                                                          BLEND_COLUMNS) + " |")  # fmt: skip
+    lines += ["", "## Time of every step (s)", ""]
+    for r in records:
+        lines.append(f"- {r['case']}: " + ", ".join(f"{k} {v:.0f}" for k, v in r["times_s"].items()))
+    ok = [e for e in all_err if e is not None]
+    success = sum(1 for e in ok if not e["failure"]) / max(len(all_err), 1)
+    med = (lambda k: float(np.median([e[k] for e in ok])) if ok else float("nan"))  # noqa: E731
+    lines += ["", f"{len(records)} cases, {len(all_err)} registered NeRFs: median r_err {med('r_err_deg'):.4f} deg, "
+              f"t_err {med('t_err'):.5f}, s_err {med('s_err'):.5f}; success rate {success:.2f}.", ""]  # fmt: skip
+    write_text_atomic(path, "\n".join(lines))
+    write_text_atomic(path.with_suffix(".json"), json.dumps(records, indent=2) + "\n")
+
+
+def main(cfg: BenchPractitioner) -> None:
+    records = []
+    for case in cfg.cases:
+        layout = _layout(case, cfg)
+        case_dir = (cfg.root / case.replace(":", "-")).absolute()
+        case_dir.mkdir(parents=True, exist_ok=True)
+        if not cfg.report_only:
+            CONSOLE.rule(case)
+            if "scene" in cfg.stages:
+                stage_scene(layout, case_dir)
+            if "colmap" in cfg.stages:
+                stage_colmap(layout, case_dir)
+            if "train" in cfg.stages:
+                stage_train(layout, case_dir, cfg)
+            if "register" in cfg.stages:
+                stage_register(layout, case_dir)
+            if "fuse" in cfg.stages:
+                stage_fuse(layout, case_dir, capture_ground_truth(layout, case_dir))
+        if run_config(case_dir, layout.captures[-1].name).is_file():
+            records.append(score_case(layout, case_dir))
+            CONSOLE.print(json.dumps(records[-1], indent=1)[:2000])
+    if cfg.report is not None and records:
+        write_report(records, cfg.report, cfg)
+        CONSOLE.print(f"report: {cfg.report}")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(BenchPractitioner))
