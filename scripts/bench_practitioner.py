@@ -19,9 +19,9 @@ Per case (a generated scene and seed), as a user would do it:
 Every stage is cached in ``<root>/<case>/`` (trained runs are never retrained unless deleted), so re-runs only redo
 what is missing. Thresholds and defaults are the tools' own; nothing here is tuned per case.
 
-Example::
+Set up (Debian's colmap and ffmpeg, then the environment): ``VENV=$(bash scripts/setup_practitioner.sh)``. Example::
 
-    python scripts/bench_practitioner.py --cases object-centric:1 drive:1 street:1 --root outputs/practitioner
+    $VENV/bin/python scripts/bench_practitioner.py --cases object-centric:1 drive:1 street:1 --root outputs/practitioner
     python scripts/bench_practitioner.py --report-only --cases ... --report reports/bench_practitioner.md
 """
 
@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -329,6 +330,9 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
 
 
 def main(cfg: BenchPractitioner) -> None:
+    missing = [tool for tool in ("colmap", "ffmpeg") if shutil.which(tool) is None]
+    if missing and not cfg.report_only:
+        raise SystemExit(f"bench_practitioner: {', '.join(missing)} not on PATH; run scripts/setup_practitioner.sh")
     records = []
     for case in cfg.cases:
         layout = _layout(case, cfg)
