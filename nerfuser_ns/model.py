@@ -656,7 +656,7 @@ class NerfuserModel(Model):
             share[ids] = main["share"]  # [N, R]
             for i in range(n):
                 outputs[f"share_{i}"] = share[i][..., None]
-            palette = _PALETTE.to(share)[torch.arange(n) % len(_PALETTE)]
+            palette = _PALETTE.to(share)[torch.arange(n, device=share.device) % len(_PALETTE)]
             outputs["nerf_share"] = (share.T @ palette).clamp(0.0, 1.0)
         if self.config.render_all_methods:
             for method, res in results.items():

@@ -400,3 +400,22 @@ def test_a_run_whose_samples_cannot_be_merged_is_named(trained):
 
     with pytest.raises(TypeError, match="run 'ngp': nerfuser: no adapter for OtherModel"):
         fuse_models([("a", trained.model, np.eye(4)), ("ngp", OtherModel(), np.eye(4))])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_every_blend_method_renders_alike_on_cuda(pair):
+    """Device-clean: the fused model moved to the GPU renders what it renders on the CPU."""
+    fused, _ = pair
+    original, on_cpu = fused.blend_method, {}
+    for method in BLEND_METHODS:
+        fused.blend_method = method
+        on_cpu[method] = render(fused, C2W, outputs=("rgb", "depth", "accumulation"))
+    gpu = copy.deepcopy(fused).to("cuda")
+    try:
+        for method in BLEND_METHODS:
+            gpu.blend_method = method
+            out = render(gpu, C2W, outputs=("rgb", "depth", "accumulation"))
+            for key, value in out.items():
+                torch.testing.assert_close(value, on_cpu[method][key], atol=2e-3, rtol=1e-3)
+    finally:
+        fused.blend_method = original
