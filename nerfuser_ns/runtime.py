@@ -8,16 +8,21 @@ installing the plugin is enough. It does three things:
    which downloads AlexNet weights and dies offline. The replacement builds the real metric on first use
    only if the weights are already in the torch hub cache, and otherwise returns NaN with one warning.
 2. nerfstudio checkpoints load under torch >= 2.6 (``weights_only=True`` by default): the numpy types they
-   hold are added to torch's safe globals, so no arbitrary pickle code is allowed.
+   hold are added to torch's safe globals, so no arbitrary pickle code is allowed. Older torch (no
+   ``add_safe_globals`` before 2.4) loads them as is: its default is ``weights_only=False``.
 3. The CPU fast path: the torch hash encoding, memory-bound on CPU, runs through ``torch.compile`` (inductor
-   fuses it into C++ loops: ~20x rendering, ~30x training here). CUDA inputs and tcnn keep the stock path.
+   fuses it into C++ loops: ~20x rendering, ~30x training here). CUDA inputs and tcnn keep the stock path, and so
+   does a torch where ``torch.compile`` cannot run or compile this (torch < 2.0, a platform or Python dynamo does
+   not support, inductor's C++ build not importable, a failing forward or backward compile: one warning).
    Disable with ``NERFUSER_CPU_FAST_PATH=0`` or ``install(fast_path=False)``.
 """
 
 from __future__ import annotations
 
+import importlib
 import os
 import warnings
+import weakref
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +34,8 @@ _installed = False
 _fast_path_enabled = True
 _fast_path_broken = False
 _compiled_hash_fwd: Any = None
+# encodings whose compiled backward ran, per input requires_grad (see _probe_backward)
+_probed: weakref.WeakKeyDictionary[nn.Module, set[bool]] = weakref.WeakKeyDictionary()
 _lpips_warned = False
 
 # torchvision's AlexNet weights, as torchmetrics' LPIPS requests them.
@@ -70,6 +77,8 @@ def fast_path_enabled() -> bool:
 
 def _allow_nerfstudio_checkpoints() -> None:
     """nerfstudio saves numpy scalars (e.g. in scheduler state); allow exactly those types."""
+    if not hasattr(torch.serialization, "add_safe_globals"):  # torch < 2.4: torch.load is not weights_only
+        return
     import numpy as np
 
     safe: list[Any] = [np.dtype, np.ndarray]
@@ -181,10 +190,20 @@ def _run_compiled(module: nn.Module, in_tensor: torch.Tensor, stock_forward: Any
     if _compiled_hash_fwd is None:
         from nerfstudio.field_components.encodings import HashEncoding
 
+        reason = _compile_unusable_reason()
+        if reason is not None:
+            _fast_path_broken = True
+            warnings.warn(
+                f"nerfuser_ns CPU fast path disabled, {reason}; using the stock hash encoding "
+                f"(set {_FAST_PATH_ENV}=0 to silence this).",
+                stacklevel=2,
+            )
+            return stock_forward(module, in_tensor)
         # One compiled function for every instance: dynamo treats module parameters as inputs, and dynamic
         # shapes avoid a recompile per ray-batch size.
         _compiled_hash_fwd = torch.compile(HashEncoding.pytorch_fwd, dynamic=True)
     try:
+        _probe_backward(module, in_tensor)
         return _compiled_hash_fwd(module, in_tensor)
     except Exception as e:  # noqa: BLE001 - no C++ compiler, unsupported platform...: fall back, once, loudly
         _fast_path_broken = True
@@ -194,3 +213,46 @@ def _run_compiled(module: nn.Module, in_tensor: torch.Tensor, stock_forward: Any
             stacklevel=2,
         )
         return stock_forward(module, in_tensor)
+
+
+def _probe_backward(module: nn.Module, in_tensor: torch.Tensor) -> None:
+    """Compile (and run) the backward of a new graph now, on a detached copy of the input, where a failure is caught.
+
+    torch compiles a graph's backward lazily, inside ``loss.backward()``, beyond the reach of :func:`_run_compiled`'s
+    fallback. torch 2.1's inductor, for one, fails there with dynamic shapes once the positions require grad (as
+    nerfacto's field always makes them). One probe per encoding and input mode (the graphs dynamo keeps apart); the
+    copy has the input's shape, strides and ``requires_grad``, so the real call reuses the probed graphs.
+    """
+    if not torch.is_grad_enabled():
+        return
+    params = [p for p in module.parameters() if p.requires_grad]
+    if not params and not in_tensor.requires_grad:
+        return
+    probed = _probed.setdefault(module, set())
+    if in_tensor.requires_grad in probed:
+        return
+    x = in_tensor.detach().requires_grad_(in_tensor.requires_grad)
+    y = _compiled_hash_fwd(module, x)
+    torch.autograd.grad(y.float().sum(), params + ([x] if x.requires_grad else []), allow_unused=True)
+    probed.add(in_tensor.requires_grad)
+
+
+def _compile_unusable_reason() -> str | None:
+    """Why ``torch.compile`` cannot run in this process (None: it may; a failure at compile time is caught later)."""
+    if not callable(getattr(torch, "compile", None)):
+        return f"torch {torch.__version__} has no torch.compile (torch >= 2.0 needed)"
+    try:
+        from torch._dynamo.eval_frame import check_if_dynamo_supported
+    except ImportError:  # pragma: no cover - a torch that moved it: let the compile attempt decide
+        return None
+    try:
+        check_if_dynamo_supported()  # raises on a platform or Python version this torch's dynamo does not support
+    except Exception as e:  # noqa: BLE001
+        return f"torch.compile is not supported here ({type(e).__name__}: {str(e)[:200]})"
+    try:
+        importlib.import_module("torch.utils.cpp_extension")  # inductor builds its CPU kernels through it
+    except ImportError as e:
+        # torch 2.1 (at least) imports setuptools' pkg_resources there, which setuptools >= 82 no longer ships
+        hint = "; pip install 'setuptools<82'" if "pkg_resources" in str(e) else ""
+        return f"inductor cannot build C++ here ({type(e).__name__}: {str(e)[:200]}{hint})"
+    return None
