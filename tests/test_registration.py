@@ -520,3 +520,41 @@ def test_moved_dataset_needs_and_takes_data(tiny_runs, tmp_path, capsys):
     assert "is missing" not in err  # now the poses load; tiny runs may still fail to register (another error)
     rc, out, err = run_cli(tmp_path, None, capsys, **kw, data=[root / "scene" / "capture_a"])
     assert_one_line_error(rc, out, err, "--data names 1 dataset folders for 2 runs")
+
+
+class MustNotRender(FakeRenderer):
+    """A run whose rendering would be the mistake: output checks must come first."""
+
+    def __init__(self, name: str, config_path: Path):
+        super().__init__(name, "noise")
+        self.config_path = config_path
+
+    def render(self, c2w, intrinsics) -> RenderBatch:
+        raise AssertionError("rendered before the output path was checked")
+
+
+def test_output_paths_are_checked_before_any_rendering(tmp_path, capsys):
+    run_dir = tmp_path / "outputs" / "a" / "nerfacto" / "run"
+    run_dir.mkdir(parents=True)
+    config = run_dir / "config.yml"
+    config.write_text("the run's config\n")
+    renderers = [MustNotRender("a", config), MustNotRender("b", tmp_path / "b" / "config.yml")]
+    for output, fragment in ((config, "inside the run folder"), (run_dir / "reg.json", "inside the run folder"),
+                             (tmp_path, "is a folder"), (tmp_path / "file.txt" / "reg.json", "is not a folder")):
+        if output.name == "reg.json" and output.parent.name == "file.txt":
+            output.parent.write_text("a file, not a folder\n")
+        cmd = cli.RegisterCommand(**{**vars(small_config()), "output": output})
+        rc = cli.run(cmd, renderers)
+        err = capsys.readouterr().err
+        assert rc == 1 and fragment in err, (output, err)
+    assert config.read_text() == "the run's config\n"  # the input is untouched
+
+
+def test_mixed_3x4_and_4x4_ground_truth_transforms(tmp_path):
+    T = sim3.make_sim3(np.eye(3), np.array([1.0, 2.0, 3.0]), 2.0)
+    (tmp_path / "a.json").write_text(json.dumps(T[:3].tolist()))
+    (tmp_path / "b.json").write_text(json.dumps({"nerf_to_world": T.tolist()}))
+    cmd = cli.RegisterCommand(gt_transforms=[tmp_path / "a.json", tmp_path / "b.json"])
+    gt = cmd._ground_truth([FakeRenderer("a", "noise"), FakeRenderer("b", "noise")])
+    assert [g.shape for g in gt] == [(4, 4), (4, 4)]
+    np.testing.assert_array_equal(gt[0], gt[1])

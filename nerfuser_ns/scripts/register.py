@@ -13,6 +13,7 @@ nothing.
 from __future__ import annotations
 
 import json
+import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +33,7 @@ from nerfuser_ns.registration import (
     write_registration,
 )
 from nerfuser_ns.runs import default_device
+from nerfuser_ns.sim3 import to_homogeneous
 
 CONSOLE = Console(width=120)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -80,6 +82,7 @@ class RegisterCommand(RegistrationConfig):
             ]  # fmt: skip
         gt = self._ground_truth(renderers)
         work_dir = self.work_dir or self.output.with_name(self.output.stem + "_work")
+        self._check_outputs(work_dir, renderers)
         config = RegistrationConfig(**{f: getattr(self, f) for f in RegistrationConfig.__dataclass_fields__})
         try:
             record = register(renderers, config, work_dir, gt_nerf_to_world=gt, console=CONSOLE)
@@ -91,6 +94,27 @@ class RegisterCommand(RegistrationConfig):
         print_summary(record)
         CONSOLE.print(f"[bold green]wrote[/] {self.output}")
         return record
+
+    def _check_outputs(self, work_dir: Path, renderers) -> None:
+        """Before any rendering: the output is a writable file path that is not an input nor inside a run folder."""
+        output = self.output.absolute()
+        for r in renderers:
+            config_path = getattr(r, "config_path", None)
+            if config_path is None:
+                continue
+            run_dir = Path(config_path).absolute().parent
+            if output == Path(config_path).absolute() or run_dir in output.parents:
+                raise RegistrationError(
+                    f"--output {self.output} is inside the run folder {run_dir}; write the registration elsewhere"
+                )
+        if output.is_dir():
+            raise RegistrationError(f"--output {self.output} is a folder; pass a file path (e.g. registration.json)")
+        for path, what in ((output, "--output"), (Path(work_dir).absolute() / "x", "--work-dir")):
+            parent = next((q for q in path.parents if q.exists()), None)
+            if parent is None or not parent.is_dir():
+                raise RegistrationError(f"{what} {path.parent}: {parent} is not a folder; pass another path")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise RegistrationError(f"{what} {path.parent}: {parent} is not writable; pass another path")
 
     def _ground_truth(self, renderers) -> list[np.ndarray] | None:
         if self.ground_truth is not None and self.gt_transforms:
@@ -120,7 +144,7 @@ class RegisterCommand(RegistrationConfig):
                     raise RegistrationError(f"{path}: unreadable ground-truth transform ({type(e).__name__})") from None
                 if T.shape not in ((4, 4), (3, 4)) or not np.isfinite(T).all():
                     raise RegistrationError(f"{path}: expected a finite 4x4 nerf_to_world matrix, got shape {T.shape}")
-                out.append(T)
+                out.append(to_homogeneous(T))
             return out
         return None
 
