@@ -98,8 +98,8 @@ class PoseSamplingConfig:
     height: int | None = None
     """Rendered image height in pixels (default: as ``width``; 300 when the reference run's dataset is gone)."""
     fov_deg: float | None = None
-    """Horizontal field of view of the renders (square pixels, centred principal point). Default: the reference run's
-    training cameras (their focal lengths and principal point, scaled with the size); 60 when its dataset is gone."""
+    """Horizontal field of view of the renders (square pixels, centred principal point). Default: that of the reference
+    run's training cameras (median focal length over width); 60 when its dataset is gone."""
     max_size: int = 400
     """With the default size: the longer side of the renders at most this many pixels (the training image size when
     smaller). SIFT needs texture at this size: 200x150 renders of a room gave too few features."""
@@ -813,8 +813,7 @@ def _training_cameras_available(renderer: Renderer) -> str | None:
     return None if poses is not None and len(poses) > 0 else "it has no training poses"
 
 
-def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig, console: Console = CONSOLE
-                     ) -> list[SamplingChoice]:  # fmt: skip
+def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) -> list[SamplingChoice]:
     """The pose-sampling settings to try, in order: the user's choice, or for ``source="auto"`` the training poses
     (then training + hemisphere, then the hemisphere) when every run's dataset is readable, else the hemisphere.
 
@@ -841,7 +840,8 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig, 
             camera_note = f"render camera from {renderers[ref].name}'s training cameras"
         else:
             auto_w, auto_h, auto_fov = DEFAULT_RENDER_SIZE
-            camera_note = "render camera 400x300 at 60 deg (the reference run's training cameras are unknown)"
+            camera_note = "render camera {}x{} at {:g} deg (the reference run's training cameras are unknown)".format(
+                *DEFAULT_RENDER_SIZE)
         width = auto_w if width is None else width
         height = auto_h if height is None else height
         fov = auto_fov if fov is None else fov
@@ -878,7 +878,7 @@ def register(
     config = config or RegistrationConfig()
     if len(renderers) < 2:
         raise RegistrationError(f"registration needs at least 2 NeRFs, got {len(renderers)}")
-    choices = resolve_sampling(renderers, config, console)
+    choices = resolve_sampling(renderers, config)
     for choice in choices:
         _validate_settings(choice.config)
     tried = []
