@@ -93,16 +93,17 @@ class PoseSamplingConfig:
     max_training_poses: int = 32
     """At most this many training poses per NeRF."""
     width: int | None = None
-    """Rendered image width in pixels (default: the reference run's training cameras, see ``max_size``; 400 when its
-    dataset is gone)."""
+    """Rendered image width in pixels (default: ``size`` along the longer side of the reference run's training
+    cameras, their aspect kept; 400 when its dataset is gone)."""
     height: int | None = None
     """Rendered image height in pixels (default: as ``width``; 300 when the reference run's dataset is gone)."""
     fov_deg: float | None = None
     """Horizontal field of view of the renders (square pixels, centred principal point). Default: that of the reference
     run's training cameras (median focal length over width); 60 when its dataset is gone."""
-    max_size: int = 400
-    """With the default size: the longer side of the renders at most this many pixels (the training image size when
-    smaller). SIFT needs texture at this size: 200x150 renders of a room gave too few features."""
+    size: int = 400
+    """With the default width and height: the longer side of the renders, in pixels, whatever the training images'
+    size (a NeRF renders at any resolution; SIFT needs texture at this size: 200x150 renders of a room gave too few
+    features, and larger renders cost time on a CPU)."""
     min_view_accumulation: float = 0.5
     """Views whose mean accumulation (opacity) is below this see mostly nothing and are left out of the SfM."""
 
@@ -780,6 +781,7 @@ def _validate_settings(config: RegistrationConfig) -> Intrinsics:
     checks = [
         (sc.source in ("hemisphere", "training", "both"), f"unknown pose source {sc.source!r}"),
         (sc.max_training_poses >= 2, "--sampling.max-training-poses must be >= 2"),
+        (sc.size >= 16, "--sampling.size must be >= 16"),
         (0.0 <= sc.min_view_accumulation <= 1.0, "--sampling.min-view-accumulation must be in [0, 1]"),
         (config.self_check_views >= 0, "--self-check-views must be >= 0"),
         (config.ncc_downsample >= 1, "--ncc-downsample must be >= 1"),
@@ -817,8 +819,8 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
     """The pose-sampling settings to try, in order: the user's choice, or for ``source="auto"`` the training poses
     (then training + hemisphere, then the hemisphere) when every run's dataset is readable, else the hemisphere.
 
-    The render camera defaults to the reference run's training cameras (their horizontal field of view and aspect,
-    the longer side at most ``max_size``); :data:`DEFAULT_RENDER_SIZE` when they are unknown.
+    The render camera defaults to the reference run's training cameras' horizontal field of view and aspect, with
+    ``size`` pixels along the longer side; :data:`DEFAULT_RENDER_SIZE` when they are unknown.
     """
     sc = config.sampling
     k = len(renderers)
@@ -834,7 +836,7 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
         ref = config.reference % k if -k <= config.reference < k else 0
         intr = None if ref in missing else getattr(renderers[ref], "training_intrinsics", lambda: None)()
         if intr is not None:
-            factor = min(1.0, sc.max_size / max(intr.width, intr.height))
+            factor = sc.size / max(intr.width, intr.height)
             auto_w, auto_h = max(8, round(intr.width * factor)), max(8, round(intr.height * factor))
             auto_fov = math.degrees(2 * math.atan2(intr.width / 2, intr.fx))
             camera_note = f"render camera from {renderers[ref].name}'s training cameras"

@@ -278,14 +278,14 @@ def test_pose_guided_pairs_are_linear_in_the_image_count(tmp_path):
 def test_automatic_sampling_uses_training_poses_when_datasets_are_readable(oc_layout, oc_renderers):
     choices = reg.resolve_sampling(oc_renderers, reg.RegistrationConfig())
     assert [c.config.sampling.source for c in choices] == ["training", "both", "hemisphere"]
-    # the render camera is the training cameras' (field of view, aspect), the longer side capped at max_size
-    intr = oc_layout.captures[0].intrinsics
+    # the render camera is the training cameras' (field of view, aspect), the longer side `size` pixels
+    intr = oc_layout.captures[0].intrinsics  # 240x180 at 65 deg
     sc = choices[0].config.sampling
-    assert (sc.width, sc.height) == (intr.width, intr.height)  # 240x180 is under the 400 px cap
+    assert (sc.width, sc.height) == (400, 300)
     assert sc.fov_deg == pytest.approx(65.0, abs=1e-6)
-    capped = reg.resolve_sampling(oc_renderers, reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(max_size=120)))
-    assert (capped[0].config.sampling.width, capped[0].config.sampling.height) == (120, 90)
-    assert capped[0].config.sampling.intrinsics().fx == pytest.approx(intr.fx / 2)
+    small = reg.resolve_sampling(oc_renderers, reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(size=120)))
+    assert (small[0].config.sampling.width, small[0].config.sampling.height) == (120, 90)
+    assert small[0].config.sampling.intrinsics().fx == pytest.approx(intr.fx / 2)
     # an explicit choice is kept as given
     given = reg.resolve_sampling(oc_renderers, small_config())
     assert len(given) == 1 and given[0].config.sampling.source == "hemisphere"
