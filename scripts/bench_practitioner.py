@@ -185,6 +185,8 @@ def stage_register(layout, case_dir: Path) -> None:
     cmd = [str(BIN / "ns-nerfuser-register"), "--configs",
            *[str(run_config(case_dir, c.name)) for c in layout.captures], "--output", str(output)]  # fmt: skip
     log = case_dir / "register.log"
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    write_text_atomic(case_dir / "register_commit.txt", (commit or "unknown") + "\n")
     try:
         seconds = _run(cmd, log)
     except RuntimeError as e:
@@ -284,6 +286,8 @@ def score_case(layout, case_dir: Path) -> dict:
         record["blend_psnr"] = {k: results.get(f"psnr_{k}", results.get("psnr") if k == "idw_sample" else None)
                                 for k, _ in BLEND_COLUMNS}  # fmt: skip
     record["times_s"] = _times(case_dir)
+    commit = case_dir / "register_commit.txt"
+    record["registered_at_commit"] = commit.read_text().strip() if commit.is_file() else None
     return record
 
 
@@ -330,7 +334,13 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
                                                           BLEND_COLUMNS) + " |")  # fmt: skip
     lines += ["", "## Time of every step (s)", ""]
     for r in records:
-        lines.append(f"- {r['case']}: " + ", ".join(f"{k} {v:.0f}" for k, v in r["times_s"].items()))
+        lines.append(f"- {r['case']} (registered with the code of {r.get('registered_at_commit')}): "
+                     + ", ".join(f"{k} {v:.0f}" for k, v in r["times_s"].items()))  # fmt: skip
+    lines += ["", "## What the automatic choice did", ""]
+    for r in records:
+        choice = r["registration"].get("sampling_choice") or {}
+        lines.append(f"- {r['case']}: {choice.get('source', '-')} ({choice.get('reason', 'no registration')}); "
+                     f"tried before: {choice.get('tried_before', [])}")
     ok = [e for e in all_err if e is not None]
     success = sum(1 for e in ok if not e["failure"]) / max(len(all_err), 1)
     med = (lambda k: float(np.median([e[k] for e in ok])) if ok else float("nan"))  # noqa: E731
