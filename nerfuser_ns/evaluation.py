@@ -91,8 +91,9 @@ class SceneRuns:
         """Ground truth: each run's NeRF frame -> the scene's world frame (capture_to_world after the inverse of the
         run's dataparser transform)."""
         return [
-            np.asarray(c["capture_to_world"], dtype=np.float64) @ sim3.invert_sim3(runs.read_dataparser_transform(p))
-            for c, p in zip(self.ground_truth["captures"], self.configs, strict=True)
+            np.asarray(c["capture_to_world"], dtype=np.float64)
+            @ sim3.invert_sim3(runs.read_dataparser_transform(p, data_override=d))
+            for c, p, d in zip(self.ground_truth["captures"], self.configs, self.capture_dirs(), strict=True)
         ]
 
     def nerf_to_common(self, reference: int = 0) -> list[Float[np.ndarray, "4 4"]]:

@@ -99,10 +99,26 @@ def read_config(config_path: Path | str) -> TrainerConfig:
         raise RunLoadError(f"{config_path}: not a nerfstudio run config (got {type(config).__name__})")
     # config.yml lives at <output_dir>/<experiment>/<method>/<timestamp>/config.yml, saved with a relative
     # output_dir: anchor it where the file is so the run works from any working directory.
-    config.output_dir = config_path.parent.parent.parent.parent
+    run_root = config_path.parent.parent.parent.parent
+    _anchor_dataset(config, run_root)
+    config.output_dir = run_root
     config.timestamp = config_path.parent.name
     config.load_dir = config_path.parent / config.relative_model_dir
     return config
+
+
+def _anchor_dataset(config: TrainerConfig, run_root: Path) -> None:
+    """A relative dataset path is relative to where ns-train ran; when it does not resolve from here, recover that
+    folder from the relative output_dir saved beside it (``<train cwd>/<output_dir>`` is ``run_root``)."""
+    data, saved_out = config.pipeline.datamanager.data, Path(config.output_dir)
+    if data is None or Path(data).is_absolute() or Path(data).exists() or saved_out.is_absolute():
+        return
+    n = len(saved_out.parts)
+    if n == 0 or run_root.absolute().parts[-n:] != saved_out.parts:
+        return
+    train_cwd = Path(*run_root.absolute().parts[:-n])
+    if (train_cwd / data).exists():
+        config.pipeline.datamanager.data = train_cwd / data
 
 
 def find_checkpoint(config_path: Path, config: TrainerConfig, step: int | None = None) -> tuple[Path, int]:

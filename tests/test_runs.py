@@ -269,3 +269,21 @@ def test_default_device_follows_torch(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert runs.default_device() == "cuda"
     assert RegisterCommand().device == "cuda" and ViewCommand(path=Path("x")).device == "cuda"
+
+
+def test_relative_dataset_path_resolves_from_another_working_directory(tmp_path, monkeypatch):
+    """ns-train stores --data as given (relative to where it ran), beside a relative output_dir: recovered from
+    any working directory."""
+    from nerfuser_ns import sampling
+
+    world = sampling.look_at(np.array([[3.0, 0, 1], [0, 3.0, 1], [-3.0, 0, 1]]), np.zeros(3))
+    work = tmp_path / "work"
+    _process_data_like_dataset(work / "data" / "part_a", world, 1.0)
+    config_path = _run_on(work / "outputs", work / "data" / "part_a")
+    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    config.output_dir, config.pipeline.datamanager.data = Path("outputs"), Path("data/part_a")
+    config_path.write_text(yaml.dump(config))
+    monkeypatch.chdir(tmp_path)  # not where it was trained
+    assert runs.read_config(config_path).pipeline.datamanager.data == work / "data" / "part_a"
+    assert runs.read_dataparser_transform(config_path).shape == (4, 4)
+    assert len(runs.training_cameras(config_path)) == 3
