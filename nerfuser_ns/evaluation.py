@@ -89,10 +89,11 @@ class SceneRuns:
 
     def nerf_to_world(self) -> list[Float[np.ndarray, "4 4"]]:
         """Ground truth: each run's NeRF frame -> the scene's world frame (capture_to_world after the inverse of the
-        run's dataparser transform)."""
+        run's dataparser transform; the run's dataset is the scene's capture folder when it has one, else the path its
+        config.yml records)."""
         return [
             np.asarray(c["capture_to_world"], dtype=np.float64)
-            @ sim3.invert_sim3(runs.read_dataparser_transform(p, data_override=d))
+            @ sim3.invert_sim3(runs.read_dataparser_transform(p, data_override=d if d.is_dir() else None))
             for c, p, d in zip(self.ground_truth["captures"], self.configs, self.capture_dirs(), strict=True)
         ]
 
