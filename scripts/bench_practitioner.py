@@ -260,10 +260,10 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
     _add_time(case_dir, "ns-render dataset", seconds)
 
 
-def score_case(layout, case_dir: Path) -> dict:
+def score_case(layout, case_dir: Path, spec: str) -> dict:
     gt = capture_ground_truth(layout, case_dir)
-    record: dict = {"case": case_dir.name, "captures": [{k: v for k, v in g.items() if k != "nerf_to_world"}
-                                                         for g in gt]}  # fmt: skip
+    captures = [{k: v for k, v in g.items() if k != "nerf_to_world"} for g in gt]
+    record: dict = {"case": case_dir.name, "spec": spec, "captures": captures}
     reg_path = case_dir / "registration.json"
     if reg_path.is_file():
         reg = json.loads(reg_path.read_text())
@@ -291,9 +291,19 @@ def score_case(layout, case_dir: Path) -> dict:
     return record
 
 
+def _short(name: str) -> str:
+    """A run's experiment name (``.../<experiment>/<method>/<timestamp>/config.yml``), or the name as given."""
+    path = Path(name)
+    return path.parents[2].name if path.name == "config.yml" and len(path.parents) > 3 else name
+
+
 def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> None:
     lines = ["# The practitioner's path: images in, registration and blend out (defaults only)", "",
-             "Command: `python scripts/bench_practitioner.py " + " ".join(sys.argv[1:]) + "`", "",
+             "Command: `python scripts/bench_practitioner.py --cases " + " ".join(r["spec"] for r in records)
+             + "` (every stage cached per case; this "
+             "file collected by `python scripts/bench_practitioner.py " + " ".join(sys.argv[1:]) + "`). Times are "
+             "wall-clock on a 2-core CPU, where other jobs (tests, other trainings) often ran beside: compare them "
+             "within a case, not across cases.", "",
              "Protocol: images in; each capture posed on its own by `ns-process-data images` (Debian's COLMAP 3.8, "
              "CPU SIFT, exhaustive matching), stock `ns-train nerfacto` for "
              f"{cfg.max_num_iterations} steps with CPU-sized options ({' '.join(TRAIN_OPTIONS)}), then "
@@ -321,8 +331,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
             all_err.append(None)
             continue
         for e in errs:
-            lines.append(f"| {r['case']} | {e['nerf']} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | {e['s_err']:.5f} | "
-                         f"{'FAIL' if e['failure'] else 'ok'} | {col} | {cen} | {posed} |")
+            lines.append(f"| {r['case']} | {_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | "
+                         f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {col} | {cen} | {posed} |")
             all_err.append(e)
     lines += ["", "## Blending (PSNR from `ns-eval`'s JSON, estimated registration, world-posed test views)", "",
               "| case | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
@@ -344,8 +354,22 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
     ok = [e for e in all_err if e is not None]
     success = sum(1 for e in ok if not e["failure"]) / max(len(all_err), 1)
     med = (lambda k: float(np.median([e[k] for e in ok])) if ok else float("nan"))  # noqa: E731
-    lines += ["", f"{len(records)} cases, {len(all_err)} registered NeRFs: median r_err {med('r_err_deg'):.4f} deg, "
-              f"t_err {med('t_err'):.5f}, s_err {med('s_err'):.5f}; success rate {success:.2f}.", ""]  # fmt: skip
+    lines += ["", f"{len(records)} case(s), {len(all_err)} registered NeRF(s): median r_err "
+              f"{med('r_err_deg'):.4f} deg, t_err {med('t_err'):.5f}, s_err {med('s_err'):.5f}; "
+              f"success rate {success:.2f}.", ""]  # fmt: skip
+    blends = [r["blend_psnr"] for r in records if r.get("blend_psnr")]
+    targets = [
+        ("success rate >= 0.95", success >= 0.95),
+        ("median r_err <= 0.1 deg", med("r_err_deg") <= 0.1),
+        ("median t_err <= 0.005", med("t_err") <= 0.005),
+        ("median s_err <= 0.005", med("s_err") <= 0.005),
+        ("IDW-Sample >= Nearest on every scene",
+         bool(blends) and all(b["idw_sample"] >= b["nearest"] for b in blends)),
+        (f"at least 6 cases (have {len(records)})", len(records) >= 6),
+    ]  # fmt: skip
+    lines.insert(-2, "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok_ else 'NOT met'}"
+                                                            for t, ok_ in targets) + ".")  # fmt: skip
+    lines.insert(-2, "")
     write_text_atomic(path, "\n".join(lines))
     write_text_atomic(path.with_suffix(".json"), json.dumps(records, indent=2) + "\n")
 
@@ -372,7 +396,7 @@ def main(cfg: BenchPractitioner) -> None:
             if "fuse" in cfg.stages:
                 stage_fuse(layout, case_dir, capture_ground_truth(layout, case_dir))
         if run_config(case_dir, layout.captures[-1].name).is_file():
-            records.append(score_case(layout, case_dir))
+            records.append(score_case(layout, case_dir, case))
             CONSOLE.print(json.dumps(records[-1], indent=1)[:2000])
     if cfg.report is not None and records:
         write_report(records, cfg.report, cfg)
