@@ -60,7 +60,7 @@ from nerfstudio.engine.trainer import TrainerConfig
 from torch.nn import Parameter
 
 from nerfuser_ns.registration import RegistrationConfig
-from nerfuser_ns.runs import applied_transform, default_device, stored_to_nerf
+from nerfuser_ns.runs import applied_transform, checkpoint_identity, default_device, stored_to_nerf
 
 SPEC_FILENAME = "fusion.json"
 """Name of the spec file looked up when ``--data`` is a folder."""
@@ -193,6 +193,22 @@ def _read_json(path: Path, what: str) -> dict:
     return data
 
 
+def _check_same_weights(config_path: Path, registered: Any, registration_path: Path) -> None:
+    """The run still renders with the checkpoint it was registered with (step and content)."""
+    now = checkpoint_identity(config_path)
+    if not isinstance(registered, dict) or (registered.get("step"), registered.get("sha256")) != (
+        now["step"], now["sha256"]
+    ):
+        step = registered.get("step") if isinstance(registered, dict) else None
+        raise FusionSpecError(
+            _one_line(
+                f"{registration_path}: {config_path} changed since it was registered (registered step {step}, "
+                f"now step {now['step']}, {now['file']}: other weights); re-run ns-nerfuser-register on the runs "
+                f"(or delete {registration_path.name} and ns-train nerfuser registers them again)"
+            )
+        )
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         return a.samefile(b)
@@ -240,6 +256,8 @@ def read_registration(path: Path | str, check_runs: bool = True) -> list[NerfEnt
         config_path = _resolve(path.parent, item["config"], f"{where}.config")
         if check_runs:
             config_path = _check_run(config_path, f"{where}.config")
+            if item.get("checkpoint") is not None:
+                _check_same_weights(config_path, item["checkpoint"], path)
         T = validate_sim3(item[key], f"{where}.{key}")
         name = item.get("name") or f"nerf{i}"
         entries.append(NerfEntry(name=str(name), config_path=config_path, nerf_to_common=T))

@@ -1047,6 +1047,8 @@ def _register_once(
         nerfs.append({
             "name": r.name,
             "config": None if config_path is None else str(Path(config_path).absolute()),
+            # which weights were registered: fusing them after a retraining is refused (nerfuser_ns.data)
+            "checkpoint": r.checkpoint_identity() if hasattr(r, "checkpoint_identity") else None,
             "T_to_reference": _mat(T_to_ref[i]),
             "transform": _mat(T_to_ref[i]),  # alias read by nerfuser_ns.data (p_reference = T @ [p_nerf, 1])
             "scale_to_reference": float(sim3.decompose_sim3(T_to_ref[i])[2]),

@@ -210,6 +210,12 @@ class NerfstudioRenderer:
             self._training_cameras = runs.training_cameras(self.config_path, self.data_override)
         return self._training_cameras
 
+    def checkpoint_identity(self) -> dict:
+        """The checkpoint rendered (file, step, SHA-256): recorded by the registration."""
+        from nerfuser_ns import runs
+
+        return runs.checkpoint_identity(self.config_path)
+
     def cache_key(self) -> str:
         stat = self.checkpoint_path.stat()
         ckpt = self.checkpoint_path.resolve()

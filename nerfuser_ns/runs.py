@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -192,6 +193,24 @@ def dataset_path(config: TrainerConfig, data_override: Path | None = None) -> Pa
         return Path(data_override)
     data = config.pipeline.datamanager.data or getattr(config.pipeline.datamanager.dataparser, "data", None)
     return None if data is None else Path(data)
+
+
+@functools.lru_cache(maxsize=64)
+def _sha256(path: Path, mtime_ns: int, size: int) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def checkpoint_identity(config_path: Path | str) -> dict:
+    """Which weights a run renders with now: its latest checkpoint's file name, step and SHA-256 (what a registration
+    records, so that a run retrained afterwards is not fused with a transform of its old weights)."""
+    config_path = resolve_config_path(config_path)
+    path, step = find_checkpoint(config_path, read_config(config_path))
+    stat = path.stat()
+    return {"file": path.name, "step": int(step), "sha256": _sha256(path.absolute(), stat.st_mtime_ns, stat.st_size)}
 
 
 def read_dataparser_transform(config_path: Path, data_override: Path | None = None) -> np.ndarray | None:

@@ -336,3 +336,29 @@ def test_datamanager_without_test_images(tmp_path, two_runs):
 def scene_yaw(yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_a_run_retrained_after_registration_is_refused(tmp_path, two_runs):
+    from nerfuser_ns.runs import checkpoint_identity
+
+    a, b = two_runs
+    entries = [{"config": str(a), "transform": np.eye(4).tolist(), "checkpoint": checkpoint_identity(a)},
+               {"config": str(b), "transform": T_B.tolist(), "checkpoint": checkpoint_identity(b)}]  # fmt: skip
+    reg = registration_file(tmp_path / "registration.json", entries)
+    assert [e.name for e in read_registration(reg)] == ["nerf0", "nerf1"]
+    assert entries[1]["checkpoint"]["step"] == 9 and len(entries[1]["checkpoint"]["sha256"]) == 64
+    # b trained further: a newer checkpoint
+    (b.parent / "nerfstudio_models" / "step-000000019.ckpt").write_bytes(b"other weights")
+    with pytest.raises(FusionSpecError, match=r"changed since it was registered \(registered step 9, now step 19"):
+        read_registration(reg)
+    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b])
+    with pytest.raises(FusionSpecError, match="re-run ns-nerfuser-register"):
+        read_fusion_spec(spec, register=False)
+    # same step, other content (a checkpoint overwritten in place) is refused too
+    (b.parent / "nerfstudio_models" / "step-000000019.ckpt").unlink()
+    (b.parent / "nerfstudio_models" / "step-000000009.ckpt").write_bytes(b"overwritten")
+    with pytest.raises(FusionSpecError, match="registered step 9, now step 9"):
+        read_registration(reg)
+    # hand-written registrations without the record still load
+    registration_file(reg, [{k: v for k, v in e.items() if k != "checkpoint"} for e in entries])
+    assert len(read_registration(reg)) == 2

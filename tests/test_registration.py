@@ -486,6 +486,7 @@ def test_real_command_on_tiny_nerfacto_runs(tiny_runs, tmp_path, monkeypatch, ca
         rec = reg.read_registration(out)
         assert len(rec["nerfs"]) == 2 and rec["nerfs"][0]["config"] == str(first)
         assert rec["nerfs"][1]["ground_truth"] is not None
+        assert rec["nerfs"][0]["checkpoint"] == runs.checkpoint_identity(first)  # which weights were registered
     else:
         assert_one_line_error(exit_info.value.code, out, err)
         assert any(s in err for s in ("views registered", "reconstructed nothing", "see enough", "self-check")), err
