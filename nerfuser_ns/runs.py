@@ -299,6 +299,20 @@ def default_device() -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
+def check_device(device: str | torch.device) -> torch.device:
+    """``device`` as a torch device that exists on this machine; :class:`RunLoadError` naming those that do."""
+    cuda = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    available = ", ".join(["cpu"] + [f"cuda:{i}" for i in range(cuda)])
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise RunLoadError(f"--device {device!r} is not a torch device; this machine has: {available}") from None
+    usable = parsed.type == "cpu" or (parsed.type == "cuda" and (parsed.index or 0) < cuda)
+    if not usable:
+        raise RunLoadError(f"--device {device!r} is not on this machine; it has: {available}")
+    return parsed
+
+
 def _model_state(state: dict, config_path: Path) -> dict[str, Tensor]:
     pipeline_state = state["pipeline"]
     model_state = {}

@@ -287,3 +287,17 @@ def test_relative_dataset_path_resolves_from_another_working_directory(tmp_path,
     assert runs.read_config(config_path).pipeline.datamanager.data == work / "data" / "part_a"
     assert runs.read_dataparser_transform(config_path).shape == (4, 4)
     assert len(runs.training_cameras(config_path)) == 3
+
+
+def test_devices_that_do_not_exist_are_one_line(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert runs.check_device("cpu") == torch.device("cpu")
+    with pytest.raises(runs.RunLoadError, match=r"--device 'banana' is not a torch device; this machine has: cpu$"):
+        runs.check_device("banana")
+    with pytest.raises(runs.RunLoadError, match=r"--device 'cuda' is not on this machine; it has: cpu$"):
+        runs.check_device("cuda")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert runs.check_device("cuda:1") == torch.device("cuda:1")
+    with pytest.raises(runs.RunLoadError, match="it has: cpu, cuda:0, cuda:1"):
+        runs.check_device("cuda:2")

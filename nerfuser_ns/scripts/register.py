@@ -32,7 +32,7 @@ from nerfuser_ns.registration import (
     register,
     write_registration,
 )
-from nerfuser_ns.runs import default_device
+from nerfuser_ns.runs import check_device, default_device
 from nerfuser_ns.sim3 import to_homogeneous
 
 CONSOLE = Console(width=120)
@@ -69,6 +69,7 @@ class RegisterCommand(RegistrationConfig):
         from nerfuser_ns.renderers import NerfstudioRenderer
 
         if renderers is None:
+            check_device(self.device)
             if len(self.configs) < 2:
                 raise RegistrationError(f"pass at least 2 runs with --configs (got {len(self.configs)})")
             if self.data and len(self.data) != len(self.configs):

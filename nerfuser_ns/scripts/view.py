@@ -23,7 +23,7 @@ import tyro
 from rich.console import Console
 
 from nerfuser_ns.blending import BlendMethod
-from nerfuser_ns.runs import default_device
+from nerfuser_ns.runs import check_device, default_device
 
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
 
@@ -57,6 +57,7 @@ class ViewCommand:
     def main(self) -> None:
         from nerfuser_ns.viewer import start_viewer
 
+        check_device(self.device)
         # The model reads its render-time settings from the environment when it is built.
         if self.blend_method is not None:
             os.environ["NERFUSER_BLEND_METHOD"] = self.blend_method
