@@ -559,3 +559,8 @@ def test_mixed_3x4_and_4x4_ground_truth_transforms(tmp_path):
     gt = cmd._ground_truth([FakeRenderer("a", "noise"), FakeRenderer("b", "noise")])
     assert [g.shape for g in gt] == [(4, 4), (4, 4)]
     np.testing.assert_array_equal(gt[0], gt[1])
+    sheared = T.copy()
+    sheared[0, 1] = 0.5
+    (tmp_path / "b.json").write_text(json.dumps(sheared.tolist()))
+    with pytest.raises(reg.RegistrationError, match="b.json: nerf_to_world: the 3x3 block is not a scaled rotation"):
+        cmd._ground_truth([FakeRenderer("a", "noise"), FakeRenderer("b", "noise")])

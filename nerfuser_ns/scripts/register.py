@@ -24,6 +24,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from nerfuser_ns.data import FusionSpecError, validate_sim3
 from nerfuser_ns.registration import (
     RegistrationConfig,
     RegistrationError,
@@ -33,7 +34,6 @@ from nerfuser_ns.registration import (
     write_registration,
 )
 from nerfuser_ns.runs import check_device, default_device
-from nerfuser_ns.sim3 import to_homogeneous
 
 CONSOLE = Console(width=120)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -143,9 +143,10 @@ class RegisterCommand(RegistrationConfig):
                     T = np.asarray(data["nerf_to_world"] if isinstance(data, dict) else data, dtype=np.float64)
                 except (OSError, ValueError, KeyError, TypeError) as e:
                     raise RegistrationError(f"{path}: unreadable ground-truth transform ({type(e).__name__})") from None
-                if T.shape not in ((4, 4), (3, 4)) or not np.isfinite(T).all():
-                    raise RegistrationError(f"{path}: expected a finite 4x4 nerf_to_world matrix, got shape {T.shape}")
-                out.append(to_homogeneous(T))
+                try:  # a "truth" that is not a SIM(3) (sheared, mirrored) would score every result wrong
+                    out.append(validate_sim3(T, f"{path}: nerf_to_world"))
+                except FusionSpecError as e:
+                    raise RegistrationError(str(e)) from None
             return out
         return None
 
