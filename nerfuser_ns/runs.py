@@ -15,11 +15,13 @@ frame of the dataset's stored poses into it; :attr:`LoadedRun.data_to_nerf` is t
 from __future__ import annotations
 
 import copy
+import dataclasses
+import enum
 import functools
 import hashlib
 import json
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Literal
 
 import numpy as np
@@ -88,11 +90,80 @@ def resolve_config_path(config_path: Path | str) -> Path:
     return config_path
 
 
+class UnsafeConfigError(RunLoadError):
+    """A config.yml names Python objects a nerfstudio config never holds (it could run code when loaded)."""
+
+
+def _trusted_packages() -> frozenset[str]:
+    """Top-level packages whose classes a run config may name: nerfstudio, ours, and installed nerfstudio plugins."""
+    from importlib.metadata import entry_points
+
+    names = {"nerfstudio", "nerfuser_ns"}
+    for group in ("nerfstudio.method_configs", "nerfstudio.dataparser_configs"):
+        names.update(ep.value.split(":")[0].split(".")[0] for ep in entry_points(group=group))
+    return frozenset(names)
+
+
+class _ConfigLoader(yaml.Loader):
+    """PyYAML's loader for nerfstudio's Python-tagged configs, restricted to what such a config holds: config
+    dataclasses and enums of nerfstudio, ours and installed nerfstudio plugins, pathlib paths, and references to their
+    classes and functions (plus torch optimisers). Anything else (``os.system``, ``subprocess``, a function applied
+    to arguments, a module) is refused before its module is even imported."""
+
+    trusted: frozenset[str] = frozenset()
+
+    def _check_name(self, kind: str, suffix: str, node: yaml.Node) -> None:
+        top = suffix.split(".")[0]
+        if kind == "name" and (top in self.trusted or suffix.startswith("torch.optim.")):
+            return
+        if kind in ("object", "apply") and (top in self.trusted or top == "pathlib"):
+            return
+        raise UnsafeConfigError(f"refusing !!python/{kind}:{suffix} at line {node.start_mark.line + 1}")
+
+    def _object(self, suffix: str, node: yaml.Node) -> object:
+        self._check_name("object", suffix, node)
+        cls = self.find_python_name(suffix, node.start_mark)
+        if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+            raise UnsafeConfigError(f"refusing !!python/object:{suffix}: not a config dataclass")
+        return self.construct_python_object(suffix, node)
+
+    def _apply(self, suffix: str, node: yaml.Node) -> object:
+        self._check_name("apply", suffix, node)
+        cls = self.find_python_name(suffix, node.start_mark)
+        if not (isinstance(cls, type) and issubclass(cls, (enum.Enum, PurePath))):
+            raise UnsafeConfigError(f"refusing !!python/object/apply:{suffix}: only enums and paths are built")
+        return self.construct_python_object_apply(suffix, node)
+
+    def _name(self, suffix: str, node: yaml.Node) -> object:
+        self._check_name("name", suffix, node)
+        return self.construct_python_name(suffix, node)
+
+    def _refuse(self, suffix: str, node: yaml.Node) -> object:
+        tag = node.tag.replace("tag:yaml.org,2002:", "!!")
+        raise UnsafeConfigError(f"refusing {tag} at line {node.start_mark.line + 1}")
+
+
+_ConfigLoader.add_multi_constructor("tag:yaml.org,2002:python/object:", _ConfigLoader._object)
+_ConfigLoader.add_multi_constructor("tag:yaml.org,2002:python/object/apply:", _ConfigLoader._apply)
+_ConfigLoader.add_multi_constructor("tag:yaml.org,2002:python/name:", _ConfigLoader._name)
+_ConfigLoader.add_multi_constructor("tag:yaml.org,2002:python/object/new:", _ConfigLoader._refuse)
+_ConfigLoader.add_multi_constructor("tag:yaml.org,2002:python/module:", _ConfigLoader._refuse)
+
+
+def load_config_yaml(text: str) -> object:
+    """Parse a run's config.yml text with :class:`_ConfigLoader` (raises :class:`UnsafeConfigError`)."""
+    _ConfigLoader.trusted = _trusted_packages()
+    return yaml.load(text, Loader=_ConfigLoader)
+
+
 def read_config(config_path: Path | str) -> TrainerConfig:
     """Read a run's config.yml, checking it is one; output_dir is re-anchored to where the run lies now."""
     config_path = resolve_config_path(config_path)
     try:
-        config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+        config = load_config_yaml(config_path.read_text())
+    except UnsafeConfigError as e:
+        message = f"{config_path}: {e}; not a nerfstudio run config (or its plugin is not installed)"
+        raise UnsafeConfigError(message) from None
     except Exception as e:  # noqa: BLE001 - YAML or import errors are the file's fault
         first_line = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise RunLoadError(f"{config_path}: not a readable nerfstudio config ({first_line})") from None

@@ -301,3 +301,41 @@ def test_devices_that_do_not_exist_are_one_line(monkeypatch):
     assert runs.check_device("cuda:1") == torch.device("cuda:1")
     with pytest.raises(runs.RunLoadError, match="it has: cpu, cuda:0, cuda:1"):
         runs.check_device("cuda:2")
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        "!!python/object/apply:os.system ['touch {marker}']",
+        "!!python/object/apply:subprocess.check_call [['touch', '{marker}']]",
+        "!!python/object/apply:nerfstudio.utils.scripts.run_command ['touch {marker}']",  # a function, not a class
+        "!!python/object/new:subprocess.Popen [['touch', '{marker}']]",
+        "!!python/name:os.system",
+        "!!python/module:os",
+    ],
+)
+def test_a_config_that_would_run_code_is_refused(tmp_path, payload):
+    marker = tmp_path / "ran"
+    run_dir = tmp_path / "outputs" / "x" / "nerfacto" / "run"
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.yml").write_text(f"method_name: nerfacto\nexploit: {payload.format(marker=marker)}\n")
+    with pytest.raises(runs.UnsafeConfigError, match=r"config.yml: refusing !!python/"):
+        runs.read_config(run_dir / "config.yml")
+    assert not marker.exists()  # nothing ran
+
+
+def test_every_kind_of_real_config_still_loads(tmp_path):
+    from nerfstudio.configs.method_configs import method_configs
+    from nerfuser_ns.method_configs.nerfacto_cpu import nerfacto_cpu_config
+    from nerfuser_ns.method_configs.nerfuser import nerfuser_config
+
+    configs = {"nerfacto": method_configs["nerfacto"], "instant-ngp": method_configs["instant-ngp"],
+               "nerfacto-cpu": nerfacto_cpu_config(), "nerfuser": nerfuser_config()}  # fmt: skip
+    for name, config in configs.items():
+        run_dir = tmp_path / "outputs" / name / name / "run"
+        run_dir.mkdir(parents=True)
+        config.experiment_name, config.timestamp = name, "run"
+        (run_dir / "config.yml").write_text(yaml.dump(config))
+        loaded = runs.read_config(run_dir / "config.yml")
+        assert type(loaded) is type(config) and loaded.method_name == config.method_name
+        assert type(loaded.pipeline.model) is type(config.pipeline.model)
