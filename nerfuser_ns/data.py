@@ -59,6 +59,7 @@ from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIn
 from nerfstudio.engine.trainer import TrainerConfig
 from torch.nn import Parameter
 
+from nerfuser_ns.model import BlendSettings, NerfuserModelConfig
 from nerfuser_ns.registration import RegistrationConfig
 from nerfuser_ns.runs import applied_transform, checkpoint_identity, default_device, stored_to_nerf
 
@@ -675,31 +676,28 @@ class NerfuserDataManager(DataManager):
 class NerfuserTrainerConfig(TrainerConfig):
     """TrainerConfig that validates the fusion spec before ``ns-train`` writes anything.
 
-    ``ns-train`` saves config.yml before the pipeline (and its datamanager) is built; checking the spec in
-    ``save_config`` makes a bad spec fail with one line and no run folder.
+    ``ns-train`` saves config.yml before the pipeline (and its datamanager) is built; checking the blend settings and
+    the spec (registering the runs when the registration file is missing) in ``save_config`` makes bad settings, a bad
+    spec or a failed registration fail with one line and no run folder.
     """
 
     def save_config(self) -> None:
         data = self.data or self.pipeline.datamanager.data
+        datamanager = self.pipeline.datamanager
         try:
-            _check_spec_only(data)
-        except FusionSpecError as e:
-            raise SystemExit(f"nerfuser: {e}") from None
+            if isinstance(self.pipeline.model, NerfuserModelConfig):
+                BlendSettings.from_config(self.pipeline.model)  # bad gamma / tau / NERFUSER_* values
+            # The whole spec, and the registration when it is missing (minutes, announced by the registration
+            # itself): a failure leaves no run folder behind.
+            read_fusion_spec(data, register=getattr(datamanager, "register_if_missing", True),
+                             registration_config=getattr(datamanager, "registration", None))  # fmt: skip
+        except (FusionSpecError, ValueError) as e:
+            raise SystemExit(f"nerfuser: {_one_line(str(e)).removeprefix('nerfuser: ')}") from None
         data = Path(data).absolute()
         self.pipeline.datamanager.data = data
         if hasattr(self.pipeline.model, "fusion_spec"):
             self.pipeline.model.fusion_spec = data  # so the model alone (runs.load_run) finds its sub-models
         super().save_config()
-
-
-def _check_spec_only(data: Path | None) -> None:
-    """Validates what can be validated before the registration runs (raises FusionSpecError)."""
-    try:
-        read_fusion_spec(data, register=False)
-    except FusionSpecError as e:
-        # A missing registration file is fine here: the datamanager registers the runs. Anything else is not.
-        if "no registration file at" not in str(e):
-            raise
 
 
 __all__ = [

@@ -281,6 +281,53 @@ def _pad_samples(x: Tensor, k: int, value: Tensor | float, dim: int) -> Tensor:
 # Model
 
 
+@dataclass(frozen=True)
+class BlendSettings:
+    """The render-time blend settings, from a model config and the ``NERFUSER_*`` environment, checked once."""
+
+    method: str
+    gamma: float
+    tau: float | None
+    """None (or 0 where given): the distance test is off."""
+    reference_nerf: int
+
+    @classmethod
+    def from_config(cls, config: NerfuserModelConfig, environ: Any = None) -> BlendSettings:
+        """``config``'s settings, overridden by ``NERFUSER_BLEND_METHOD`` / ``_GAMMA`` / ``_TAU``; ValueError (one line,
+        naming the option or variable) when a value is unusable."""
+        environ = os.environ if environ is None else environ
+
+        def number(name: str, value: Any) -> float:
+            try:
+                return float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"nerfuser: {name} must be a number, got {value!r}") from None
+
+        method = environ.get(_ENV_METHOD, config.blend_method)
+        gamma = number(_ENV_GAMMA, environ[_ENV_GAMMA]) if _ENV_GAMMA in environ else number("gamma", config.gamma)
+        tau: Any = config.tau
+        if _ENV_TAU in environ:
+            raw = environ[_ENV_TAU].strip()
+            tau = None if raw.lower() in ("", "none", "off") else number(_ENV_TAU, raw)
+        elif tau is not None:
+            tau = number("tau", tau)
+        tau = None if tau == 0 else tau  # 0 turns the test off, as in the viewer
+        settings = cls(str(method), gamma, tau, int(config.reference_nerf))
+        settings.check()
+        return settings
+
+    def check(self, num_nerfs: int | None = None) -> None:
+        if self.method not in BLEND_METHODS:
+            raise ValueError(f"nerfuser: unknown blend method {self.method!r}; choose one of {BLEND_METHODS}")
+        if not (self.gamma >= 0):  # also rejects NaN
+            raise ValueError(f"nerfuser: gamma must be >= 0, got {self.gamma}")
+        if self.tau is not None and not (self.tau >= 1):
+            raise ValueError(f"nerfuser: tau must be >= 1 (a distance ratio), or 0 / None to turn the test off; "
+                             f"got {self.tau}")  # fmt: skip
+        if num_nerfs is not None and not -num_nerfs <= self.reference_nerf < num_nerfs:
+            raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {num_nerfs} NeRFs")
+
+
 @dataclass
 class NerfuserModelConfig(ModelConfig):
     """Fused NeRFs (NeRFuser). The sub-models come from the fusion spec (see nerfuser_ns.data), never from here."""
@@ -295,8 +342,8 @@ class NerfuserModelConfig(ModelConfig):
     """IDW blending rate (w ~ d^-gamma); 0: mean, inf: nearest. The paper uses 5 (objects), 10 (street)."""
     tau: float | None = 1.8
     """Distance test (IDW methods): NeRFs whose origin is more than tau times as far from the camera as the nearest
-    one's are left out (two NeRFs: the nearest alone past that ratio). None disables it. The paper uses 1.8
-    (objects), 1.2 (street)."""
+    one's are left out (two NeRFs: the nearest alone past that ratio). None or 0 disables it (as in the viewer). The
+    paper uses 1.8 (objects), 1.2 (street)."""
     reference_nerf: int = 0
     """The NeRF rendered by the ``nerf`` method."""
     share_outputs: bool = True
@@ -354,14 +401,12 @@ class NerfuserModel(Model):
         self.register_buffer("nerf_scales", scales.float(), persistent=False)
         self._identity = [bool(torch.equal(t, torch.eye(4, dtype=t.dtype))) for t in T]
 
-        # Render-time settings (the viewer and the environment may change them).
-        self.blend_method: str = os.environ.get(_ENV_METHOD, self.config.blend_method)
-        self.gamma: float = float(os.environ.get(_ENV_GAMMA, self.config.gamma))
-        tau_env = os.environ.get(_ENV_TAU)
-        self.tau: float | None = self.config.tau
-        if tau_env is not None:
-            self.tau = None if tau_env.strip().lower() in ("", "none") else float(tau_env)
-        self.reference_nerf = self.config.reference_nerf
+        # Render-time settings (the viewer may change them afterwards).
+        settings = BlendSettings.from_config(self.config)
+        self.blend_method: str = settings.method
+        self.gamma: float = settings.gamma
+        self.tau: float | None = settings.tau
+        self.reference_nerf = settings.reference_nerf
         self._check_settings()
         self._add_viewer_controls()
 
@@ -378,14 +423,7 @@ class NerfuserModel(Model):
         return len(self.adapters)
 
     def _check_settings(self) -> None:
-        if self.blend_method not in BLEND_METHODS:
-            raise ValueError(f"nerfuser: unknown blend method {self.blend_method!r}; choose one of {BLEND_METHODS}")
-        if not (self.gamma >= 0):
-            raise ValueError(f"nerfuser: gamma must be >= 0, got {self.gamma}")
-        if self.tau is not None and not (self.tau >= 1):
-            raise ValueError(f"nerfuser: tau must be >= 1 (a distance ratio) or None, got {self.tau}")
-        if not -self.num_nerfs <= self.reference_nerf < self.num_nerfs:
-            raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {self.num_nerfs} NeRFs")
+        BlendSettings(self.blend_method, self.gamma, self.tau, self.reference_nerf).check(self.num_nerfs)
 
     def _add_viewer_controls(self) -> None:
         try:

@@ -362,3 +362,55 @@ def test_a_run_retrained_after_registration_is_refused(tmp_path, two_runs):
     # hand-written registrations without the record still load
     registration_file(reg, [{k: v for k, v in e.items() if k != "checkpoint"} for e in entries])
     assert len(read_registration(reg)) == 2
+
+
+@pytest.mark.parametrize(
+    ("settings", "env", "message"),
+    [
+        ({"gamma": -1.0}, {}, "gamma must be >= 0, got -1.0"),
+        ({"gamma": float("nan")}, {}, "gamma must be >= 0, got nan"),
+        ({"tau": 0.5}, {}, "tau must be >= 1"),
+        ({}, {"NERFUSER_TAU": "banana"}, "NERFUSER_TAU must be a number, got 'banana'"),
+        ({}, {"NERFUSER_BLEND_METHOD": "idw-4d"}, "unknown blend method 'idw-4d'"),
+    ],
+)
+def test_ns_train_with_bad_blend_settings_writes_no_run(tmp_path, two_runs, monkeypatch, settings, env, message):
+    a, b = two_runs
+    registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
+                                                       {"config": str(b), "transform": T_B.tolist()}])  # fmt: skip
+    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b])
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    config = nerfuser_config()
+    config.data, config.output_dir = spec, tmp_path / "out"
+    for key, value in settings.items():
+        setattr(config.pipeline.model, key, value)
+    config.set_timestamp()
+    with pytest.raises(SystemExit, match=r"^nerfuser: " + message.replace("(", r"\(")):
+        config.save_config()
+    assert not (tmp_path / "out").exists()
+
+
+def test_tau_zero_turns_the_distance_test_off_everywhere(monkeypatch):
+    from nerfuser_ns.model import BlendSettings, NerfuserModelConfig
+
+    assert BlendSettings.from_config(NerfuserModelConfig(tau=0.0), environ={}).tau is None
+    assert BlendSettings.from_config(NerfuserModelConfig(), environ={"NERFUSER_TAU": "0"}).tau is None
+    assert BlendSettings.from_config(NerfuserModelConfig(), environ={"NERFUSER_TAU": "none"}).tau is None
+    assert BlendSettings.from_config(NerfuserModelConfig(tau=1.2), environ={}).tau == 1.2
+
+
+def test_a_failed_automatic_registration_leaves_no_run(tmp_path, two_runs, monkeypatch):
+    a, b = two_runs
+
+    def fail(*args, **kwargs):
+        raise FusionSpecError("registration.json: automatic registration failed: no overlap (run ns-nerfuser-register)")
+
+    monkeypatch.setattr(fdata, "run_registration", fail)
+    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b])
+    config = nerfuser_config()
+    config.data, config.output_dir = spec, tmp_path / "out"
+    config.set_timestamp()
+    with pytest.raises(SystemExit, match="^nerfuser: registration.json: automatic registration failed"):
+        config.save_config()
+    assert not (tmp_path / "out").exists()
