@@ -25,6 +25,7 @@ import hashlib
 import json
 import os
 import shutil
+import socket
 import tempfile
 import threading
 import time
@@ -615,6 +616,25 @@ def load_fused_pipeline(
     return config, pipeline, 0, None
 
 
+def check_bind(host: str, port: int | None) -> None:
+    """The viewer can serve on ``host`` and ``port`` (None: a free port is picked later): ViewerSetupError otherwise."""
+    if port is not None and not 1 <= port <= 65535:
+        raise ViewerSetupError(f"--port {port}: not a TCP port (1-65535)")
+    try:
+        infos = socket.getaddrinfo(host, port or 0, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as e:
+        raise ViewerSetupError(f"--host {host!r}: cannot be resolved ({e}); use 127.0.0.1 or 0.0.0.0") from None
+    if port is None:
+        return
+    family, socktype, proto, _, address = infos[0]
+    with socket.socket(family, socktype, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as e:
+            raise ViewerSetupError(f"cannot serve on {host}:{port} ({e.strerror}); pick another --port") from None
+
+
 def start_viewer(
     source: Path | str,
     host: str = "127.0.0.1",
@@ -633,6 +653,7 @@ def start_viewer(
     from nerfstudio.utils import writer
     from nerfstudio.viewer.viewer import Viewer
 
+    check_bind(host, port)  # viser's server thread dies on a bad bind and the caller would wait forever
     config, pipeline, step, run_dir = load_fused_pipeline(
         source, device=device, register_if_missing=register_if_missing
     )

@@ -35,7 +35,7 @@ from nerfuser_ns import registration, sim3
 from nerfuser_ns.data import write_fusion_spec
 from nerfuser_ns.model import _PALETTE
 from nerfuser_ns.renderers import RenderBatch
-from nerfuser_ns.viewer import VISER_SCALE, ViewerSetupError, load_fused_pipeline, start_viewer
+from nerfuser_ns.viewer import VISER_SCALE, ViewerSetupError, check_bind, load_fused_pipeline, start_viewer
 
 pytestmark = pytest.mark.slow
 
@@ -580,3 +580,20 @@ def test_bad_input_is_one_line(tmp_path):
         load_fused_pipeline(RUNS[0])
     with pytest.raises(ViewerSetupError, match="nowhere.json: no such file or folder"):
         load_fused_pipeline(tmp_path / "nowhere.json")
+
+
+def test_an_impossible_bind_fails_at_once(fusion_spec, tmp_path):
+    with pytest.raises(ViewerSetupError, match=r"--port 70000: not a TCP port"):
+        check_bind("127.0.0.1", 70000)
+    with pytest.raises(ViewerSetupError, match=r"--host 'no-such-host.invalid': cannot be resolved"):
+        check_bind("no-such-host.invalid", None)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        with pytest.raises(ViewerSetupError, match=r"cannot serve on 127.0.0.1:\d+ .*pick another --port"):
+            check_bind("127.0.0.1", taken.getsockname()[1])
+    # the command: one line and exit 1, not a viewer waiting forever on a dead server thread
+    proc = subprocess.run([str(BIN / "ns-nerfuser-view"), str(fusion_spec), "--port", "70000", "--timeout", "60"],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)  # fmt: skip
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines()[-1].startswith("ns-nerfuser-view: --port 70000: not a TCP port")
