@@ -770,6 +770,11 @@ def load_ground_truth_captures(path: Path, captures: Sequence[str]) -> list[np.n
 def _validate_settings(config: RegistrationConfig) -> Intrinsics:
     """Check the settings before anything is rendered; returns the render intrinsics."""
     sc = config.sampling
+    numbers = {"--sampling.center": sc.center, "--sampling.radius": sc.radius, "--sampling.jitter-deg": sc.jitter_deg,
+               "--sampling.elevation-range-deg": sc.elevation_range_deg}  # fmt: skip
+    for option, value in numbers.items():
+        if not np.isfinite(np.asarray(value, dtype=np.float64)).all():
+            raise RegistrationError(f"{option} {value}: must be finite")
     try:
         intr = sc.intrinsics()
         if sc.source in ("hemisphere", "both"):

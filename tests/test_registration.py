@@ -564,3 +564,27 @@ def test_mixed_3x4_and_4x4_ground_truth_transforms(tmp_path):
     (tmp_path / "b.json").write_text(json.dumps(sheared.tolist()))
     with pytest.raises(reg.RegistrationError, match="b.json: nerf_to_world: the 3x3 block is not a scaled rotation"):
         cmd._ground_truth([FakeRenderer("a", "noise"), FakeRenderer("b", "noise")])
+
+
+def test_non_finite_sampling_settings_are_refused_before_rendering(tmp_path, capsys):
+    renderers = [MustNotRender("a", tmp_path / "a" / "config.yml"), MustNotRender("b", tmp_path / "b" / "config.yml")]
+    for sampling, fragment in (({"center": (0.0, float("nan"), 0.0)}, "--sampling.center (0.0, nan, 0.0): must be"),
+                               ({"radius": float("inf")}, "--sampling.radius inf: must be finite")):  # fmt: skip
+        cmd = cli.RegisterCommand(**{**vars(small_config(sampling=sampling)), "output": tmp_path / "r.json",
+                                     "work_dir": tmp_path / "work"})  # fmt: skip
+        rc = cli.run(cmd, renderers)
+        err = capsys.readouterr().err
+        assert rc == 1 and fragment in err, err
+        assert not (tmp_path / "work").exists()  # nothing cached
+
+
+def test_ctrl_c_is_one_line(tmp_path, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "register", interrupted)
+    rc = cli.run(cli.RegisterCommand(**{**vars(small_config()), "output": tmp_path / "r.json"}),
+                 [FakeRenderer("a", "noise"), FakeRenderer("b", "noise")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 130 and err.strip().startswith("interrupted: nothing written") and "Traceback" not in err
+    assert not (tmp_path / "r.json").exists()

@@ -93,6 +93,10 @@ class RegisterCommand(RegistrationConfig):
             raise
         write_registration(record, self.output)
         print_summary(record)
+        odd = [n["name"] for n in record["nerfs"] if not 1e-3 <= n["scale_to_reference"] <= 1e3]
+        if odd:
+            CONSOLE.print(f"[bold yellow]warning: implausible scale to the reference for {', '.join(odd)} (outside "
+                          "1e-3..1e3): check that these runs show the same place[/]")  # fmt: skip
         CONSOLE.print(f"[bold green]wrote[/] {self.output}")
         return record
 
@@ -222,6 +226,11 @@ def run(cmd: RegisterCommand, renderers: list | None = None) -> int:
         message = str(e).splitlines()[0] if str(e) else type(e).__name__
         ERR_CONSOLE.print(Text.assemble(("error: ", "bold red"), (message, "red")), highlight=False)
         return 1
+    except KeyboardInterrupt:
+        # finished renders stay in the work folder (written atomically) and are reused by the next run
+        ERR_CONSOLE.print(Text.assemble(("interrupted: ", "bold red"), ("nothing written; renders made so far are "
+                                                                         "kept for the next run", "red")))  # fmt: skip
+        return 130
     return 0
 
 
