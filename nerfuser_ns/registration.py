@@ -282,6 +282,22 @@ def render_key(renderer: Renderer, cfg: PoseSamplingConfig) -> str:
     return _hash({"renderer": renderer.cache_key(), "sampling": asdict(cfg), "version": FORMAT_VERSION})[:16]
 
 
+def _damage(views: ViewSet) -> str | None:
+    """What is wrong with a cached render folder (a missing or truncated image, unreadable accumulation), or None."""
+    try:
+        if views.load_accumulation().shape[0] != len(views.c2w):
+            return "accumulation.npz does not match poses.json"
+    except (OSError, ValueError, KeyError) as e:
+        return f"accumulation.npz: {type(e).__name__}"
+    for k in range(len(views.c2w)):
+        try:
+            with Image.open(views.folder / "images" / f"{k:05d}.png") as image:
+                image.load()  # decodes: a truncated file fails here
+        except (OSError, ValueError) as e:
+            return f"images/{k:05d}.png: {type(e).__name__}"
+    return None
+
+
 def render_views_cached(
     renderer: Renderer, cfg: PoseSamplingConfig, renders_root: Path, console: Console = CONSOLE
 ) -> ViewSet:
@@ -293,14 +309,19 @@ def render_views_cached(
         try:
             meta = json.loads(meta_path.read_text())
             views = meta["views"]
-            return ViewSet(
+            cached = ViewSet(
                 renderer.name, folder, np.array([v["c2w"] for v in views], dtype=np.float64),
                 [v["source"] for v in views], np.array([v["mean_accumulation"] for v in views]),
                 np.array([v["kept"] for v in views], dtype=bool), reused=True,
                 render_seconds=meta.get("render_seconds"),
             )
-        except (KeyError, ValueError, TypeError):
-            pass  # a damaged cache entry is rendered again
+            damage = _damage(cached)
+        except (KeyError, ValueError, TypeError) as e:
+            damage = f"unreadable poses.json ({type(e).__name__})"
+        if damage is None:
+            return cached
+        console.print(f"[yellow]{renderer.name}: cached renders in {folder} are damaged ({damage}); rendering again[/]")
+        shutil.rmtree(folder, ignore_errors=True)
 
     c2w, sources = sample_poses(renderer, cfg)
     intr = cfg.intrinsics()
@@ -562,8 +583,13 @@ def load_observations(sfm: SfMResult) -> dict[str, np.ndarray]:
         if not models:
             raise RegistrationError(f"{folder}: no SfM model to refine on; delete the folder to rerun the SfM")
         _save_observations(max(models, key=lambda r: r.num_reg_images()), path)
-    with np.load(path) as z:
-        return {key: z[key] for key in z.files}
+    try:
+        with np.load(path) as z:
+            return {key: z[key] for key in z.files}
+    except (OSError, ValueError, EOFError) as e:
+        raise RegistrationError(
+            f"{path}: damaged SfM cache ({type(e).__name__}); delete {folder} and run again (the SfM is redone)"
+        ) from None
 
 
 def refine_transforms(

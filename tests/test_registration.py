@@ -13,6 +13,7 @@ import shutil
 import sys
 import zlib
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -588,3 +589,23 @@ def test_ctrl_c_is_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert rc == 130 and err.strip().startswith("interrupted: nothing written") and "Traceback" not in err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_damaged_caches_are_rebuilt_or_named(tmp_path):
+    sampling = reg.PoseSamplingConfig(source="hemisphere", num_poses=4, width=16, height=12)
+    renderer = FakeRenderer("noise", "noise")
+    first = reg.render_views_cached(renderer, sampling, tmp_path / "renders", Console(quiet=True))
+    assert not first.reused
+    assert reg.render_views_cached(renderer, sampling, tmp_path / "renders", Console(quiet=True)).reused
+    image = first.folder / "images" / "00002.png"
+    good = image.read_bytes()
+    image.write_bytes(good[: len(good) // 2])  # truncated
+    console = Console(record=True, width=200)
+    again = reg.render_views_cached(renderer, sampling, tmp_path / "renders", console)
+    assert not again.reused and image.read_bytes() == good  # rendered again, identically
+    text = console.export_text()
+    assert "images/00002.png" in text and "rendering again" in text
+    (tmp_path / "sfm").mkdir()
+    (tmp_path / "sfm" / "observations.npz").write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises(reg.RegistrationError, match=r"observations.npz: damaged SfM cache .*delete"):
+        reg.load_observations(SimpleNamespace(folder=str(tmp_path / "sfm")))
