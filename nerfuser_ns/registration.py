@@ -24,6 +24,7 @@ import os
 import shutil
 import tempfile
 import time
+import zipfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
@@ -287,7 +288,7 @@ def _damage(views: ViewSet) -> str | None:
     try:
         if views.load_accumulation().shape[0] != len(views.c2w):
             return "accumulation.npz does not match poses.json"
-    except (OSError, ValueError, KeyError) as e:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
         return f"accumulation.npz: {type(e).__name__}"
     for k in range(len(views.c2w)):
         try:
@@ -586,7 +587,7 @@ def load_observations(sfm: SfMResult) -> dict[str, np.ndarray]:
     try:
         with np.load(path) as z:
             return {key: z[key] for key in z.files}
-    except (OSError, ValueError, EOFError) as e:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise RegistrationError(
             f"{path}: damaged SfM cache ({type(e).__name__}); delete {folder} and run again (the SfM is redone)"
         ) from None
