@@ -17,7 +17,7 @@ inputs (run checkpoints, settings), registration renders and SfM in ``--output-d
 what changed. The report (``report.md``, ``report.json``, plots) is rewritten atomically after every section.
 
 Examples:
-    python scripts/evaluate.py                 # the full suite (hours on a 2-core CPU; see README)
+    python scripts/evaluate.py                 # the full suite (hours on a 2-core CPU; see docs/benchmarks.md)
     python scripts/evaluate.py --quick         # a reduced version on the demo scene (minutes)
 """
 
