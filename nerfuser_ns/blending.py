@@ -28,9 +28,12 @@ the authors' reference code does, instead of letting a far NeRF take the samples
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 import torch
 from jaxtyping import Bool, Float, Int
@@ -556,3 +559,193 @@ def render_samples(
     if background_rgb is not None:
         rgb = rgb + (1.0 - weights.sum(dim=-1, keepdim=True)) * background_rgb
     return rgb
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Settings and the one entry the fused model calls
+
+ENV_METHOD = "NERFUSER_BLEND_METHOD"
+ENV_GAMMA = "NERFUSER_GAMMA"
+ENV_TAU = "NERFUSER_TAU"
+
+SHARE_PALETTE = torch.tensor(
+    [
+        [0.122, 0.467, 0.706],
+        [1.000, 0.498, 0.055],
+        [0.173, 0.627, 0.173],
+        [0.839, 0.153, 0.157],
+        [0.580, 0.404, 0.741],
+        [0.549, 0.337, 0.294],
+        [0.890, 0.467, 0.761],
+        [0.498, 0.498, 0.498],
+        [0.737, 0.741, 0.133],
+        [0.090, 0.745, 0.812],
+    ]
+)
+"""Colours of the colour-coded share map (tab10): NeRF i gets ``SHARE_PALETTE[i % 10]``."""
+
+
+@dataclass(frozen=True)
+class BlendSettings:
+    """The render-time blend settings: one frozen value, checked when it is made (:meth:`checked`).
+
+    Every writer (the model config, the ``NERFUSER_*`` environment, the viewer, sweeps) builds a new value through
+    :meth:`from_config` or :meth:`replace`; nothing validates per forward pass.
+    """
+
+    method: str = "idw-sample"
+    gamma: float = 1.0
+    tau: float | None = None
+    """None (or 0 where given): the distance test is off."""
+    reference_nerf: int = 0
+
+    @classmethod
+    def from_config(cls, config: Any, environ: Any = None) -> BlendSettings:
+        """A model config's ``blend_method`` / ``gamma`` / ``tau`` / ``reference_nerf``, overridden by
+        ``NERFUSER_BLEND_METHOD`` / ``_GAMMA`` / ``_TAU``; ValueError (one line, naming the option or variable) when a
+        value is unusable."""
+        environ = os.environ if environ is None else environ
+
+        def number(name: str, value: Any) -> float:
+            try:
+                return float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"nerfuser: {name} must be a number, got {value!r}") from None
+
+        method = environ.get(ENV_METHOD, config.blend_method)
+        gamma = number(ENV_GAMMA, environ[ENV_GAMMA]) if ENV_GAMMA in environ else number("gamma", config.gamma)
+        tau: Any = config.tau
+        if ENV_TAU in environ:
+            raw = environ[ENV_TAU].strip()
+            tau = None if raw.lower() in ("", "none", "off") else number(ENV_TAU, raw)
+        elif tau is not None:
+            tau = number("tau", tau)
+        return cls(str(method), gamma, tau, int(config.reference_nerf)).checked()
+
+    def checked(self, num_nerfs: int | None = None) -> BlendSettings:
+        """This value with ``tau = 0`` read as off, or ValueError (one line) naming what is wrong."""
+        if self.method not in BLEND_METHODS:
+            raise ValueError(f"nerfuser: unknown blend method {self.method!r}; choose one of {BLEND_METHODS}")
+        if not (self.gamma >= 0):  # also rejects NaN
+            raise ValueError(f"nerfuser: gamma must be >= 0, got {self.gamma}")
+        if self.tau is not None and self.tau != 0 and not (self.tau >= 1):
+            raise ValueError(f"nerfuser: tau must be >= 1 (a distance ratio), or 0 / None to turn the test off; "
+                             f"got {self.tau}")  # fmt: skip
+        if num_nerfs is not None and not -num_nerfs <= self.reference_nerf < num_nerfs:
+            raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {num_nerfs} NeRFs")
+        return self if self.tau != 0 else dataclasses.replace(self, tau=None)
+
+    def check(self, num_nerfs: int | None = None) -> None:
+        self.checked(num_nerfs)
+
+    def replace(self, num_nerfs: int | None = None, **changes: Any) -> BlendSettings:
+        """A checked copy with ``changes`` (the only way settings change after the model is built)."""
+        return dataclasses.replace(self, **changes).checked(num_nerfs)
+
+
+def median_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
+    """nerfstudio's "median" depth: the midpoint of the sample where the accumulated weight reaches 0.5."""
+    cum = torch.cumsum(weights, dim=-1)
+    split = torch.full_like(cum[..., :1], 0.5)
+    idx = torch.searchsorted(cum.contiguous(), split, side="left").clamp(0, mids.shape[-1] - 1)
+    return torch.gather(mids, -1, idx)[..., 0]
+
+
+def expected_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
+    """nerfstudio's "expected" depth, clipped per ray to the sample range."""
+    depth = (weights * mids).sum(-1) / (weights.sum(-1) + 1e-10)
+    return torch.clip(depth, mids.amin(-1), mids.amax(-1))
+
+
+def median_mids(merged: MergedSamples) -> Float[Tensor, "*bs m"]:
+    """Merged midpoints for the median depth, zero-length intervals taking the previous real interval's midpoint.
+
+    Merging duplicates boundaries (e.g. identical NeRFs, padding); where the accumulated weight never reaches 0.5
+    the median falls on the last interval, which must be the last real one, as for a single NeRF.
+    """
+    pos = merged.deltas > 0
+    idx = torch.arange(pos.shape[-1], device=pos.device).expand_as(pos)
+    last_real = torch.where(pos, idx, 0).cummax(dim=-1).values
+    return merged.midpoints.gather(-1, last_real)
+
+
+def blend(
+    methods: Sequence[str],
+    starts: Float[Tensor, "num_nerfs num_rays k"],
+    ends: Float[Tensor, "num_nerfs num_rays k"],
+    weights: Float[Tensor, "num_nerfs num_rays k"],
+    rgbs: Float[Tensor, "num_nerfs num_rays k 3"],
+    background_rgbs: Float[Tensor, "num_nerfs num_rays 3"],
+    ray_origins: Float[Tensor, "num_rays 3"],
+    ray_directions: Float[Tensor, "num_rays 3"],
+    nerf_origins: Float[Tensor, "num_nerfs 3"],
+    settings: BlendSettings,
+    reference: int = 0,
+) -> dict[str, dict[str, Tensor]]:
+    """Every blend method in ``methods`` on the same per-NeRF ray samples (common-frame distances): per method its
+    ``rgb``, ``accumulation``, (median) ``depth``, ``expected_depth`` and per-NeRF ``share`` ``[num_nerfs, num_rays]``.
+
+    The distance test (``settings.tau``) applies to the IDW methods; ``reference`` is the index (among these NeRFs)
+    that ``"nerf"`` shows. The reference functions above (``nearest_blend``, ``idw_2d``, ``idw_3d``,
+    ``idw_sample_blend``) are this entry's twins in the tests.
+    """
+    tau = settings.tau
+    camera_d = camera_to_origin_distances(ray_origins, nerf_origins)  # [N, R]
+    mask = distance_mask(camera_d, tau)
+    results: dict[str, dict[str, Tensor]] = {}
+    per_nerf = None
+    if any(m != "idw-sample" for m in methods):
+        mids = 0.5 * (starts + ends)
+        per_nerf = (render_samples(weights, rgbs, background_rgbs).clamp(0.0, 1.0), weights.sum(-1),
+                    median_depth(weights, mids), expected_depth(weights, mids))  # fmt: skip
+    for method in methods:
+        if method == "idw-sample":
+            # Each ray merges only the samples of the NeRFs passing its distance test, packed into the first slots
+            # (as many as the most any ray of the chunk blends): the others must not split its intervals, so a ray
+            # renders the same in any batch, and the sort sees no samples that cannot count.
+            slots = int(mask.sum(0).max())
+            order = torch.argsort((~mask).to(torch.uint8), dim=0, stable=True)[:slots]  # [S, R]
+            keep = mask.gather(0, order)[..., None]
+            idx = order[..., None].expand(-1, -1, starts.shape[-1])
+            st, en = starts.gather(0, idx), ends.gather(0, idx)
+            far = torch.where(keep[..., 0], en[..., -1], -math.inf).amax(dim=0)[None, :, None]
+            merged = merge_samples(
+                torch.where(keep, st, far),
+                torch.where(keep, en, far),
+                torch.where(keep, weights.gather(0, idx), 0.0),
+                rgbs.gather(0, idx[..., None].expand(-1, -1, -1, rgbs.shape[-1])),
+            )
+            d, d_bg = merged_sample_distances(merged, ray_origins, ray_directions, nerf_origins[order])
+            out = idw_sample_blend(
+                merged,
+                d,
+                settings.gamma,
+                background_rgbs=background_rgbs.gather(0, order[..., None].expand(-1, -1, background_rgbs.shape[-1])),
+                background_distances=d_bg,
+                camera_distances=camera_d.gather(0, order) if tau is not None else None,
+                tau=tau,
+            )
+            results[method] = {
+                "rgb": out.rgb.clamp(0.0, 1.0),
+                "accumulation": out.accumulation,
+                "depth": median_depth(out.weights, median_mids(merged)),
+                "expected_depth": out.depth,
+                "share": torch.zeros_like(camera_d).scatter_(0, order, out.nerf_share),
+            }
+            continue
+        assert per_nerf is not None
+        rgb_i, acc_i, depth_i, exp_i = per_nerf
+        surface_d = None
+        if method == "idw-3d":
+            pts = expected_points(ray_origins, ray_directions, exp_i)
+            surface_d = torch.linalg.vector_norm(pts - nerf_origins[:, None, :], dim=-1)
+        w = image_blend_weights(method, camera_d, settings.gamma, tau, surface_distances=surface_d,  # type: ignore[arg-type]
+                                reference=reference)  # fmt: skip
+        results[method] = {
+            "rgb": blend_renders(rgb_i, w),
+            "accumulation": (w * acc_i).sum(0),
+            "depth": (w * depth_i).sum(0),
+            "expected_depth": (w * exp_i).sum(0),
+            "share": w,
+        }
+    return results

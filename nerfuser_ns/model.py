@@ -25,7 +25,6 @@ The blend method, gamma and tau can be changed at render time: set :attr:`Nerfus
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,28 +41,9 @@ from torch import Tensor, nn
 from torch.nn import Parameter
 
 from nerfuser_ns import blending, runtime
-from nerfuser_ns.blending import BLEND_METHODS, BlendMethod
-
-_ENV_METHOD = "NERFUSER_BLEND_METHOD"
-_ENV_GAMMA = "NERFUSER_GAMMA"
-_ENV_TAU = "NERFUSER_TAU"
-
-# Colours of the colour-coded share map (tab10).
-_PALETTE = torch.tensor(
-    [
-        [0.122, 0.467, 0.706],
-        [1.000, 0.498, 0.055],
-        [0.173, 0.627, 0.173],
-        [0.839, 0.153, 0.157],
-        [0.580, 0.404, 0.741],
-        [0.549, 0.337, 0.294],
-        [0.890, 0.467, 0.761],
-        [0.498, 0.498, 0.498],
-        [0.737, 0.741, 0.133],
-        [0.090, 0.745, 0.812],
-    ]
-)
-
+from nerfuser_ns.blending import BLEND_METHODS, SHARE_PALETTE, BlendMethod, BlendSettings
+from nerfuser_ns.runs import load_run
+from nerfuser_ns.spec import read_fusion_spec
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Sub-model adapters
@@ -237,32 +217,6 @@ def map_rays(
     return mapped, k
 
 
-def median_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
-    """nerfstudio's "median" depth: the midpoint of the sample where the accumulated weight reaches 0.5."""
-    cum = torch.cumsum(weights, dim=-1)
-    split = torch.full_like(cum[..., :1], 0.5)
-    idx = torch.searchsorted(cum.contiguous(), split, side="left").clamp(0, mids.shape[-1] - 1)
-    return torch.gather(mids, -1, idx)[..., 0]
-
-
-def expected_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
-    """nerfstudio's "expected" depth, clipped per ray to the sample range."""
-    depth = (weights * mids).sum(-1) / (weights.sum(-1) + 1e-10)
-    return torch.clip(depth, mids.amin(-1), mids.amax(-1))
-
-
-def _median_mids(merged: blending.MergedSamples) -> Float[Tensor, "*bs m"]:
-    """Merged midpoints for the median depth, zero-length intervals taking the previous real interval's midpoint.
-
-    Merging duplicates boundaries (e.g. identical NeRFs, padding); where the accumulated weight never reaches 0.5
-    the median falls on the last interval, which must be the last real one, as for a single NeRF.
-    """
-    pos = merged.deltas > 0
-    idx = torch.arange(pos.shape[-1], device=pos.device).expand_as(pos)
-    last_real = torch.where(pos, idx, 0).cummax(dim=-1).values
-    return merged.midpoints.gather(-1, last_real)
-
-
 def _pad_samples(x: Tensor, k: int, value: Tensor | float, dim: int) -> Tensor:
     """Pads the samples axis to ``k`` (zero-length, zero-weight samples at the last end keep bins contiguous)."""
     missing = k - x.shape[dim]
@@ -279,53 +233,6 @@ def _pad_samples(x: Tensor, k: int, value: Tensor | float, dim: int) -> Tensor:
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Model
-
-
-@dataclass(frozen=True)
-class BlendSettings:
-    """The render-time blend settings, from a model config and the ``NERFUSER_*`` environment, checked once."""
-
-    method: str
-    gamma: float
-    tau: float | None
-    """None (or 0 where given): the distance test is off."""
-    reference_nerf: int
-
-    @classmethod
-    def from_config(cls, config: NerfuserModelConfig, environ: Any = None) -> BlendSettings:
-        """``config``'s settings, overridden by ``NERFUSER_BLEND_METHOD`` / ``_GAMMA`` / ``_TAU``; ValueError (one line,
-        naming the option or variable) when a value is unusable."""
-        environ = os.environ if environ is None else environ
-
-        def number(name: str, value: Any) -> float:
-            try:
-                return float(value)
-            except (TypeError, ValueError):
-                raise ValueError(f"nerfuser: {name} must be a number, got {value!r}") from None
-
-        method = environ.get(_ENV_METHOD, config.blend_method)
-        gamma = number(_ENV_GAMMA, environ[_ENV_GAMMA]) if _ENV_GAMMA in environ else number("gamma", config.gamma)
-        tau: Any = config.tau
-        if _ENV_TAU in environ:
-            raw = environ[_ENV_TAU].strip()
-            tau = None if raw.lower() in ("", "none", "off") else number(_ENV_TAU, raw)
-        elif tau is not None:
-            tau = number("tau", tau)
-        tau = None if tau == 0 else tau  # 0 turns the test off, as in the viewer
-        settings = cls(str(method), gamma, tau, int(config.reference_nerf))
-        settings.check()
-        return settings
-
-    def check(self, num_nerfs: int | None = None) -> None:
-        if self.method not in BLEND_METHODS:
-            raise ValueError(f"nerfuser: unknown blend method {self.method!r}; choose one of {BLEND_METHODS}")
-        if not (self.gamma >= 0):  # also rejects NaN
-            raise ValueError(f"nerfuser: gamma must be >= 0, got {self.gamma}")
-        if self.tau is not None and not (self.tau >= 1):
-            raise ValueError(f"nerfuser: tau must be >= 1 (a distance ratio), or 0 / None to turn the test off; "
-                             f"got {self.tau}")  # fmt: skip
-        if num_nerfs is not None and not -num_nerfs <= self.reference_nerf < num_nerfs:
-            raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {num_nerfs} NeRFs")
 
 
 @dataclass
@@ -374,9 +281,6 @@ class NerfuserModel(Model):
         if metadata.get("nerfuser_models") is not None:
             entries = list(metadata["nerfuser_models"])
         elif metadata.get("nerfuser") is not None or self.config.fusion_spec is not None:
-            from nerfuser_ns.data import read_fusion_spec
-            from nerfuser_ns.runs import load_run
-
             spec = metadata.get("nerfuser") or read_fusion_spec(self.config.fusion_spec, register=False)
             entries = [(n.name, load_run(n.config_path, device="cpu").model, n.nerf_to_common) for n in spec.nerfs]
         else:
@@ -401,13 +305,8 @@ class NerfuserModel(Model):
         self.register_buffer("nerf_scales", scales.float(), persistent=False)
         self._identity = [bool(torch.equal(t, torch.eye(4, dtype=t.dtype))) for t in T]
 
-        # Render-time settings (the viewer may change them afterwards).
-        settings = BlendSettings.from_config(self.config)
-        self.blend_method: str = settings.method
-        self.gamma: float = settings.gamma
-        self.tau: float | None = settings.tau
-        self.reference_nerf = settings.reference_nerf
-        self._check_settings()
+        # Render-time settings: one checked value, changed only through set_blend (viewer, sweeps, attributes).
+        self.blend_settings = BlendSettings.from_config(self.config).checked(self.num_nerfs)
         self._add_viewer_controls()
 
         from torchmetrics.functional import structural_similarity_index_measure
@@ -422,8 +321,18 @@ class NerfuserModel(Model):
     def num_nerfs(self) -> int:
         return len(self.adapters)
 
-    def _check_settings(self) -> None:
-        BlendSettings(self.blend_method, self.gamma, self.tau, self.reference_nerf).check(self.num_nerfs)
+    def set_blend(self, **changes: Any) -> BlendSettings:
+        """Change blend settings (``method``, ``gamma``, ``tau``, ``reference_nerf``): checked here, once; ValueError
+        (one line) leaves the settings as they were."""
+        self.blend_settings = self.blend_settings.replace(self.num_nerfs, **changes)
+        return self.blend_settings
+
+    # The settings as attributes (nerfstudio style); assigning one goes through set_blend.
+    blend_method = property(lambda self: self.blend_settings.method, lambda self, v: self.set_blend(method=v))
+    gamma = property(lambda self: self.blend_settings.gamma, lambda self, v: self.set_blend(gamma=v))
+    tau = property(lambda self: self.blend_settings.tau, lambda self, v: self.set_blend(tau=v))
+    reference_nerf = property(lambda self: self.blend_settings.reference_nerf,
+                              lambda self, v: self.set_blend(reference_nerf=v))  # fmt: skip
 
     def _add_viewer_controls(self) -> None:
         try:
@@ -432,19 +341,19 @@ class NerfuserModel(Model):
             return
 
         def set_method(element) -> None:  # noqa: ANN001
-            self.blend_method = element.value
+            self.set_blend(method=element.value)
 
         def set_gamma(element) -> None:  # noqa: ANN001
-            self.gamma = max(float(element.value), 0.0)
+            self.set_blend(gamma=max(float(element.value), 0.0))
 
         def set_tau(element) -> None:  # noqa: ANN001
-            self.tau = None if float(element.value) <= 0 else max(float(element.value), 1.0)
+            self.set_blend(tau=None if float(element.value) <= 0 else max(float(element.value), 1.0))
 
         # The NeRF of the `nerf` method, picked by name ("index: name" so equal names stay distinct).
         reference_options = [f"{i}: {name}" for i, name in enumerate(self.nerf_names)]
 
         def set_reference(element) -> None:  # noqa: ANN001
-            self.reference_nerf = reference_options.index(element.value)
+            self.set_blend(reference_nerf=reference_options.index(element.value))
 
         self.viewer_blend_method = ViewerDropdown(
             "NeRFuser blend method", self.blend_method, list(BLEND_METHODS), cb_hook=set_method
@@ -542,7 +451,6 @@ class NerfuserModel(Model):
         return self._usage(camera_d)[1]
 
     def get_outputs(self, ray_bundle: RayBundle) -> dict[str, Tensor]:
-        self._check_settings()  # they may have been changed since (attributes, viewer)
         shape = ray_bundle.origins.shape[:-1]
         flat = ray_bundle.flatten() if len(shape) != 1 else ray_bundle
         outputs = self._blend(flat, self.nerf_samples(flat, self.used_nerfs(flat)))
@@ -551,7 +459,6 @@ class NerfuserModel(Model):
     def blend_samples(self, ray_bundle: RayBundle, per_nerf: list[QueriedSamples | None]) -> dict[str, Tensor]:
         """Blends samples from :meth:`nerf_samples` (flat rays) under the current settings: re-blending the same
         samples with other settings (a gamma sweep) needs no new sub-model queries."""
-        self._check_settings()
         return self._blend(ray_bundle, per_nerf)
 
     # --- blending ---------------------------------------------------------------------------------------------------
@@ -600,88 +507,19 @@ class NerfuserModel(Model):
         n = self.num_nerfs
         origins, directions = ray_bundle.origins, ray_bundle.directions
         nerf_origins = self.nerf_origins.to(origins)
-        camera_d = blending.camera_to_origin_distances(origins, nerf_origins)  # [N, R]
-        tau = self.tau if n > 1 else None
-        mask, used = self._usage(camera_d)
+        _, used = self._usage(blending.camera_to_origin_distances(origins, nerf_origins))
         # Only the NeRFs some ray uses take part; the nearest always does, so the distance test and the nearest NeRF
         # come out the same on this subset as on all N.
         ids = [i for i in range(n) if bool(used[i].any())]
         starts_t, ends_t, p, c, bg, have = self._stack_samples(per_nerf, ids, used)
-        camera_d, mask, nerf_origins = camera_d[ids], mask[ids], nerf_origins[ids]
         # A NeRF's missing rays become zero-length, massless samples at the ray's far end, which split nothing.
         far = torch.where(have, ends_t[..., -1], -math.inf).amax(dim=0)[None, :, None]
         starts_t = torch.where(have[..., None], starts_t, far)
         ends_t = torch.where(have[..., None], ends_t, far)
-
-        methods = self._methods()
-        render_level = [m for m in methods if m != "idw-sample"]
-        per_nerf_render = None
-        if render_level:
-            mids = 0.5 * (starts_t + ends_t)
-            rgb_i = blending.render_samples(p, c, bg).clamp(0.0, 1.0)  # [n, R, 3]
-            acc_i = p.sum(-1)
-            depth_i = median_depth(p, mids)
-            exp_i = expected_depth(p, mids)
-            per_nerf_render = (rgb_i, acc_i, depth_i, exp_i)
-
-        results: dict[str, dict[str, Tensor]] = {}
-        for method in methods:
-            if method == "idw-sample":
-                # Each ray merges only the samples of the NeRFs passing its distance test, packed into the first
-                # slots (as many as the most any ray of the chunk blends): the others must not split its intervals,
-                # so a ray renders the same in any batch, and the sort sees no samples that cannot count.
-                slots = int(mask.sum(0).max())
-                order = torch.argsort((~mask).to(torch.uint8), dim=0, stable=True)[:slots]  # [S, R]
-                keep = mask.gather(0, order)[..., None]
-                idx = order[..., None].expand(-1, -1, starts_t.shape[-1])
-                st, en = starts_t.gather(0, idx), ends_t.gather(0, idx)
-                far_idw = torch.where(keep[..., 0], en[..., -1], -math.inf).amax(dim=0)[None, :, None]
-                merged = blending.merge_samples(
-                    torch.where(keep, st, far_idw),
-                    torch.where(keep, en, far_idw),
-                    torch.where(keep, p.gather(0, idx), 0.0),
-                    c.gather(0, idx[..., None].expand(-1, -1, -1, c.shape[-1])),
-                )
-                d, d_bg = blending.merged_sample_distances(merged, origins, directions, nerf_origins[order])
-                out = blending.idw_sample_blend(
-                    merged,
-                    d,
-                    self.gamma,
-                    background_rgbs=bg.gather(0, order[..., None].expand(-1, -1, bg.shape[-1])),
-                    background_distances=d_bg,
-                    camera_distances=camera_d.gather(0, order) if tau is not None else None,
-                    tau=tau,
-                )
-                results[method] = {
-                    "rgb": out.rgb.clamp(0.0, 1.0),
-                    "accumulation": out.accumulation,
-                    "depth": median_depth(out.weights, _median_mids(merged)),
-                    "expected_depth": out.depth,
-                    "share": torch.zeros_like(camera_d).scatter_(0, order, out.nerf_share),
-                }
-            else:
-                assert per_nerf_render is not None
-                rgb_i, acc_i, depth_i, exp_i = per_nerf_render
-                surface_d = None
-                if method == "idw-3d":
-                    pts = blending.expected_points(origins, directions, exp_i)
-                    surface_d = torch.linalg.vector_norm(pts - nerf_origins[:, None, :], dim=-1)
-                w = blending.image_blend_weights(
-                    method,
-                    camera_d,
-                    self.gamma,
-                    tau,
-                    surface_distances=surface_d,  # type: ignore[arg-type]
-                    reference=ids.index(self.reference_nerf % n) if method == "nerf" else 0,
-                )
-                results[method] = {
-                    "rgb": blending.blend_renders(rgb_i, w),
-                    "accumulation": (w * acc_i).sum(0),
-                    "depth": (w * depth_i).sum(0),
-                    "expected_depth": (w * exp_i).sum(0),
-                    "share": w,
-                }
-
+        settings = self.blend_settings if n > 1 else self.blend_settings.replace(tau=None)
+        ref = self.reference_nerf % n
+        results = blending.blend(self._methods(), starts_t, ends_t, p, c, bg, origins, directions, nerf_origins[ids],
+                                 settings, reference=ids.index(ref) if ref in ids else 0)  # fmt: skip
         main = results[self.blend_method]
         outputs = {
             "rgb": main["rgb"],
@@ -694,7 +532,7 @@ class NerfuserModel(Model):
             share[ids] = main["share"]  # [N, R]
             for i in range(n):
                 outputs[f"share_{i}"] = share[i][..., None]
-            palette = _PALETTE.to(share)[torch.arange(n, device=share.device) % len(_PALETTE)]
+            palette = SHARE_PALETTE.to(share)[torch.arange(n, device=share.device) % len(SHARE_PALETTE)]
             outputs["nerf_share"] = (share.T @ palette).clamp(0.0, 1.0)
         if self.config.render_all_methods:
             for method, res in results.items():

@@ -38,10 +38,10 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from nerfuser_ns import bundle, sim3
+from nerfuser_ns.cameras import Intrinsics, intrinsics_from_fov
 from nerfuser_ns.files import atomic_path, write_text_atomic
 from nerfuser_ns.renderers import Renderer
-from nerfuser_ns.sampling import intrinsics_from_fov, sample_hemisphere_poses
-from nerfuser_ns.scenes import Intrinsics
+from nerfuser_ns.sampling import sample_hemisphere_poses
 
 FORMAT_VERSION = 1
 CONSOLE = Console(width=120)
@@ -758,39 +758,6 @@ def _spanning_pairs(overlap: np.ndarray) -> list[tuple[int, int]]:
 
 
 # ---------------------------------------------------------------------------------------------------------------------
-# Ground truth
-
-
-def ground_truth_errors(
-    T_to_ref: Float[np.ndarray, "k 4 4"], gt_nerf_to_world: Sequence[np.ndarray], reference: int
-) -> list[dict]:
-    """Paper's r/t/s errors of every ``T_i->ref`` against ground truth ``inv(W_ref) W_i`` (t in reference units)."""
-    W = sim3.to_homogeneous(np.asarray(gt_nerf_to_world, dtype=np.float64))
-    out = []
-    for i in range(len(T_to_ref)):
-        T_true = sim3.relative_sim3(W[reference], W[i])
-        e = sim3.sim3_errors(T_to_ref[i], T_true)
-        out.append({"r_err_deg": _f(e.r_err_deg), "t_err": _f(e.t_err), "s_err": _f(e.s_err),
-                    "failure": bool(e.is_failure()), "T_to_reference_true": _mat(T_true)})
-    return out
-
-
-def load_ground_truth_captures(path: Path, captures: Sequence[str]) -> list[np.ndarray]:
-    """``capture_to_world`` of the named captures from a generated scene's ground_truth.json."""
-    path = Path(path)
-    path = path / "ground_truth.json" if path.is_dir() else path
-    try:
-        gt = json.loads(path.read_text())
-        table = {c["name"]: np.asarray(c["capture_to_world"], dtype=np.float64) for c in gt["captures"]}
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise RegistrationError(f"{path}: not a readable ground_truth.json ({type(e).__name__}: {e})") from None
-    missing = [c for c in captures if c not in table]
-    if missing:
-        raise RegistrationError(f"{path}: no capture named {missing[0]!r}; it has {sorted(table)}")
-    return [table[c] for c in captures]
-
-
-# ---------------------------------------------------------------------------------------------------------------------
 # The whole registration
 
 
@@ -899,12 +866,10 @@ def register(
     renderers: Sequence[Renderer],
     config: RegistrationConfig | None = None,
     work_dir: Path | str = Path("nerfuser_register_work"),
-    gt_nerf_to_world: Sequence[np.ndarray] | None = None,
     console: Console = CONSOLE,
 ) -> dict:
     """Register N >= 2 renderers; returns the registration record (what :func:`write_registration` stores).
 
-    ``gt_nerf_to_world[i]`` (optional) maps NeRF i's frame to a common ground-truth world; errors are then reported.
     With ``sampling.source="auto"`` (the default) the pose sources of :func:`resolve_sampling` are tried in order until
     one registers; each choice and each fallback is printed. Raises :class:`RegistrationError` (one line, naming the
     NeRF) when the result cannot be trusted.
@@ -921,7 +886,7 @@ def register(
         console.print(f"pose sampling: [bold]{sc.source}[/] ({choice.reason}), renders {sc.width}x{sc.height} at "
                       f"{sc.fov_deg:.1f} deg")  # fmt: skip
         try:
-            record = _register_once(renderers, choice.config, work_dir, gt_nerf_to_world, console)
+            record = _register_once(renderers, choice.config, work_dir, console)
         except RegistrationError as e:
             if n + 1 == len(choices):
                 raise
@@ -939,7 +904,6 @@ def _register_once(
     renderers: Sequence[Renderer],
     config: RegistrationConfig,
     work_dir: Path | str,
-    gt_nerf_to_world: Sequence[np.ndarray] | None,
     console: Console,
 ) -> dict:
     """One registration with concrete pose-sampling settings (see :func:`register`)."""
@@ -953,8 +917,6 @@ def _register_once(
     ref = config.reference % k
     if config.estimator not in ("nerfuser", "nerfuser-median", "umeyama-ransac"):
         raise RegistrationError(f"unknown estimator {config.estimator!r}")
-    if gt_nerf_to_world is not None and len(gt_nerf_to_world) != k:
-        raise RegistrationError(f"ground truth given for {len(gt_nerf_to_world)} NeRFs, but {k} NeRFs were passed")
     keys = [render_key(r, config.sampling) for r in renderers]
     for a in range(k):
         for b in range(a):
@@ -1054,7 +1016,6 @@ def _register_once(
     timings["self_check"] = time.perf_counter() - t0
 
     # 5. The record.
-    gt = ground_truth_errors(T_to_ref, gt_nerf_to_world, ref) if gt_nerf_to_world is not None else None
     check_of = {(c.i, c.j): c for c in checks}
     pairs = []
     for i in range(k):
@@ -1100,7 +1061,6 @@ def _register_once(
                 "centre_median": _f(np.median(cen)), "centre_max": _f(np.max(cen)),
                 "centre_units": "this NeRF's units", "of": "the SfM's cameras against the final transform",
             },
-            "ground_truth": None if gt is None else gt[i],
         })
     record = {
         "format_version": FORMAT_VERSION,
@@ -1129,10 +1089,6 @@ def _register_once(
             for k_, v in {**compute, "solve": timings["solve"], "self_check": timings["self_check"]}.items()
         },
         "reused": {"renders": [vs.reused for vs in views], "sfm": sfm.reused},
-        "ground_truth": None if gt is None else {
-            "failure": any(g["failure"] for n, g in enumerate(gt) if n != ref),
-            "rule": "NaN, r_err > 5 deg, t_err > 0.2 (reference units) or s_err = |log s| > 0.1",
-        },
     }
 
     # 6. Fail clearly when the self-check says the SfM merged the wrong things.
@@ -1156,7 +1112,6 @@ def register_runs(
     work_dir: Path | str | None = None,
     names: Sequence[str] | None = None,
     device: str = "cpu",
-    gt_nerf_to_world: Sequence[np.ndarray] | None = None,
     console: Console = CONSOLE,
     data_overrides: Sequence[Path | None] | None = None,
 ) -> dict:
@@ -1181,7 +1136,7 @@ def register_runs(
         for i, c in enumerate(config_paths)
     ]  # fmt: skip
     work_dir = Path(work_dir) if work_dir is not None else output.with_name(output.stem + "_work")
-    record = register(renderers, config, work_dir, gt_nerf_to_world=gt_nerf_to_world, console=console)
+    record = register(renderers, config, work_dir, console=console)
     write_registration(record, output)
     return record
 

@@ -1,20 +1,16 @@
 """Things that render images from camera poses, for registration from re-rendering.
 
-Registration only needs "something that renders RGB from a camera-to-world pose in its own frame". Two adapters:
+Registration only needs "something that renders RGB from a camera-to-world pose in its own frame": the
+:class:`Renderer` protocol. :class:`NerfstudioRenderer` adapts a trained nerfstudio run, loaded lazily from its own
+config.yml (see :mod:`nerfuser_ns.runs`); the benchmark kit adds a ground-truth scene renderer
+(``nerfuser_ns.bench.scene_renderer``).
 
-* :class:`NerfstudioRenderer`: a trained nerfstudio run, loaded lazily from its own config.yml (see
-  :mod:`nerfuser_ns.runs`).
-* :class:`SceneFrameRenderer`: a ground-truth generated scene (:mod:`nerfuser_ns.scenes`) seen through a frame's
-  SIM(3), i.e. a perfect "NeRF" whose frame is, e.g., a capture frame. It makes end-to-end tests fast and exact.
-
-Poses are camera-to-world 4x4 in nerfstudio's OpenGL camera convention, intrinsics a :class:`scenes.Intrinsics`.
+Poses are camera-to-world 4x4 in nerfstudio's OpenGL camera convention, intrinsics a :class:`cameras.Intrinsics`.
 """
 
 from __future__ import annotations
 
 import functools
-import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -22,7 +18,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from jaxtyping import Float
 
-from nerfuser_ns.scenes import Intrinsics
+from nerfuser_ns import runs
+from nerfuser_ns.cameras import Intrinsics
 
 
 @dataclass
@@ -66,7 +63,8 @@ class Renderer(Protocol):
         ...
 
 
-def _as_4x4(c2w: np.ndarray) -> np.ndarray:
+def as_4x4(c2w: np.ndarray) -> np.ndarray:
+    """Poses as float64 [N, 4, 4] from [4, 4], [3, 4], [N, 3, 4] or [N, 4, 4]."""
     c2w = np.asarray(c2w, dtype=np.float64)
     if c2w.ndim == 2:
         c2w = c2w[None]
@@ -75,84 +73,6 @@ def _as_4x4(c2w: np.ndarray) -> np.ndarray:
     if c2w.shape[-2:] != (4, 4):
         raise ValueError(f"poses must be [N, 3|4, 4], got {c2w.shape}")
     return c2w
-
-
-class SceneFrameRenderer:
-    """A ground-truth scene seen through ``frame_to_world`` (SIM(3)): a perfect NeRF living in that frame.
-
-    A pose ``G`` in the frame is rendered from the world pose ``transform_poses(frame_to_world, G)``; the pinhole
-    intrinsics are unchanged (a similarity does not change what a camera sees). Accumulation is the hit mask; depth
-    is the ray-caster's world ray distance divided by the frame's scale (frame units).
-    """
-
-    def __init__(
-        self,
-        scene,
-        frame_to_world: Float[np.ndarray, "4 4"],
-        name: str,
-        training_c2w: Float[np.ndarray, "n 4 4"] | None = None,
-        supersample: int = 1,
-        key: str = "",
-    ):
-        self.scene = scene
-        self.frame_to_world = np.asarray(frame_to_world, dtype=np.float64)
-        self.name = name
-        self._training = None if training_c2w is None else _as_4x4(training_c2w)
-        self.supersample = supersample
-        self._key = key
-        self._training_intrinsics: Intrinsics | None = None
-
-    @classmethod
-    def from_layout(
-        cls, layout, capture: str, frame_to_capture: np.ndarray | None = None, supersample: int = 1
-    ) -> SceneFrameRenderer:
-        """The capture ``capture`` of a :class:`scenes.SceneLayout`, in the capture's frame.
-
-        ``frame_to_capture`` (SIM(3)) puts the renderer in another frame, e.g. ``inv(data_to_nerf)`` to mimic the
-        frame a nerfstudio run trained on that capture lives in. Training poses are the capture's, in that frame.
-        """
-        from nerfuser_ns.sim3 import compose, invert_sim3, transform_poses
-
-        caps = {c.name: c for c in layout.captures}
-        if capture not in caps:
-            raise ValueError(f"no capture {capture!r} in the layout; it has {sorted(caps)}")
-        cap = caps[capture]
-        frame_to_capture = np.eye(4) if frame_to_capture is None else np.asarray(frame_to_capture, dtype=np.float64)
-        frame_to_world = compose(cap.capture_to_world, frame_to_capture)
-        training = transform_poses(invert_sim3(frame_to_capture), cap.c2w_capture)
-        key = json.dumps({"layout": layout.layout, "params": layout.params}, sort_keys=True, default=str)
-        renderer = cls(layout.scene, frame_to_world, capture, training, supersample, key=key)
-        renderer._training_intrinsics = cap.intrinsics
-        return renderer
-
-    def cache_key(self) -> str:
-        h = hashlib.sha256(self._key.encode())
-        h.update(np.round(self.frame_to_world, 12).tobytes())
-        h.update(f"{self.name}|{self.supersample}".encode())
-        return "scene:" + h.hexdigest()
-
-    def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics, depth: bool = False) -> RenderBatch:
-        from nerfuser_ns.scenes import render
-        from nerfuser_ns.sim3 import decompose_sim3, transform_poses
-
-        world = transform_poses(self.frame_to_world, _as_4x4(c2w))
-        scale = float(decompose_sim3(self.frame_to_world)[2])  # world units per frame unit
-        k = intrinsics
-        rgbs, accs, depths = [], [], []
-        for pose in world:
-            out = render(self.scene, pose, k.fx, k.fy, k.cx, k.cy, k.width, k.height, supersample=self.supersample)
-            rgbs.append(out.rgb.numpy())
-            accs.append(out.mask.numpy().astype(np.float32))
-            depths.append(out.depth.numpy() / scale)
-        return RenderBatch(
-            np.stack(rgbs).astype(np.float32), np.stack(accs), np.stack(depths).astype(np.float32) if depth else None
-        )
-
-    def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
-        return None if self._training is None else self._training.copy()
-
-    def training_intrinsics(self) -> Intrinsics | None:
-        return self._training_intrinsics
 
 
 class NerfstudioRenderer:
@@ -170,8 +90,6 @@ class NerfstudioRenderer:
         eval_num_rays_per_chunk: int | None = None,
         name: str | None = None,
     ):
-        from nerfuser_ns import runs
-
         self.config_path = runs.resolve_config_path(config_path)
         config = runs.read_config(self.config_path)
         self.checkpoint_path, self.step = runs.find_checkpoint(self.config_path, config)
@@ -185,13 +103,9 @@ class NerfstudioRenderer:
     @functools.cached_property
     def data_to_nerf(self) -> np.ndarray | None:
         """SIM(3) from the run's stored dataset frame to its NeRF frame (reads the dataset: see runs)."""
-        from nerfuser_ns import runs
-
         return runs.read_dataparser_transform(self.config_path, self.data_override)
 
     def _load(self):
-        from nerfuser_ns import runs
-
         if self._loaded is None:
             self._loaded = runs.load_run(
                 self.config_path,
@@ -204,16 +118,12 @@ class NerfstudioRenderer:
     def training_cameras(self):  # noqa: ANN201 - nerfstudio Cameras (imported lazily)
         """The run's training cameras in its NeRF frame, parsed from its dataset (``runs.RunLoadError`` when the
         dataset cannot be read)."""
-        from nerfuser_ns import runs
-
         if self._training_cameras is None:
             self._training_cameras = runs.training_cameras(self.config_path, self.data_override)
         return self._training_cameras
 
     def checkpoint_identity(self) -> dict:
         """The checkpoint rendered (file, step, SHA-256): recorded by the registration."""
-        from nerfuser_ns import runs
-
         return runs.checkpoint_identity(self.config_path)
 
     def cache_key(self) -> str:
@@ -224,11 +134,9 @@ class NerfstudioRenderer:
     def render(self, c2w: Float[np.ndarray, "n 4 4"], intrinsics: Intrinsics, depth: bool = False) -> RenderBatch:
         """Render the views; ``depth=True`` adds the model's ``depth`` output (nerfacto: the median sample distance
         along the unit-direction ray, i.e. ray distance in the NeRF frame's units)."""
-        from nerfuser_ns import runs
-
         loaded = self._load()
         k = intrinsics
-        cameras = runs.make_cameras(_as_4x4(c2w)[:, :3, :], k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        cameras = runs.make_cameras(as_4x4(c2w)[:, :3, :], k.fx, k.fy, k.cx, k.cy, k.width, k.height)
         names = ("rgb", "accumulation", "depth") if depth else ("rgb", "accumulation")
         out = runs.render_views(loaded.model, cameras, outputs=names, progress=False)
         rgb = out["rgb"].clamp(0, 1).numpy().astype(np.float32)
@@ -238,10 +146,8 @@ class NerfstudioRenderer:
     def training_poses(self) -> Float[np.ndarray, "n 4 4"] | None:
         """The training poses as the run finally saw them: with its camera optimiser's learned corrections (stock
         nerfacto optimises poses), so the renders show what the run learned best."""
-        from nerfuser_ns import runs
-
         c2w = self.training_cameras().camera_to_worlds
-        return _as_4x4(runs.optimized_poses(self._load().model, c2w).detach().cpu().numpy())
+        return as_4x4(runs.optimized_poses(self._load().model, c2w).detach().cpu().numpy())
 
     def training_intrinsics(self) -> Intrinsics | None:
         cams = self.training_cameras()

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Literal
 
 import numpy as np
 from jaxtyping import Float
@@ -162,31 +161,3 @@ def sample_hemisphere_poses(
     )
     eye = center + radius * direction
     return look_at(eye, target, np.array([0.0, 0.0, 1.0]))
-
-
-def intrinsics_from_fov(
-    width: int, height: int, fov_deg: float, fov_axis: Literal["x", "y"] = "x"
-) -> tuple[float, float, float, float]:
-    """Pinhole intrinsics ``(fx, fy, cx, cy)`` with square pixels and the principal point at the image centre.
-
-    ``fov_deg`` is the full field of view along the image width (``fov_axis="x"``) or height (``"y"``).
-    """
-    if width <= 0 or height <= 0:
-        raise ValueError(f"image size must be positive, got {width}x{height}")
-    if not 0 < fov_deg < 180:
-        raise ValueError(f"field of view must be in (0, 180) degrees, got {fov_deg}")
-    if fov_axis not in ("x", "y"):
-        raise ValueError(f"fov_axis must be 'x' or 'y', got {fov_axis!r}")
-    extent = width if fov_axis == "x" else height
-    f = (extent / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
-    return f, f, width / 2.0, height / 2.0
-
-
-def fov_from_intrinsics(focal: float, extent: int) -> float:
-    """Full field of view in degrees for focal length ``focal`` (pixels) over ``extent`` pixels."""
-    return math.degrees(2.0 * math.atan2(extent / 2.0, focal))
-
-
-def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> Float[np.ndarray, "3 3"]:
-    """3x3 pinhole calibration matrix ``K``."""
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])

@@ -41,15 +41,15 @@ from nerfstudio.viewer.viewer_elements import ViewerControl
 if TYPE_CHECKING:
     from nerfstudio.viewer.viewer import Viewer
 
-    from nerfuser_ns.data import FusionSpec
     from nerfuser_ns.model import NerfuserModel
+    from nerfuser_ns.spec import FusionSpec
 
 VISER_SCALE = 10.0
 """nerfstudio's viewer draws nerfstudio units x10 (``VISER_NERFSTUDIO_SCALE_RATIO``)."""
 CPU_MAX_RES = 256
 """Default "Max res" of the viewer when the model renders on the CPU (nerfstudio's default, 512, takes ~4x longer)."""
 
-# Names of the share colours (nerfuser_ns.model._PALETTE, tab10), for the legend.
+# Names of the share colours (nerfuser_ns.blending.SHARE_PALETTE, tab10), for the legend.
 _COLOUR_NAMES = ["blue", "orange", "green", "red", "purple", "brown", "pink", "grey", "olive", "cyan"]
 _TEST_COLOUR = (255, 211, 105)  # nerfstudio's brand colour: the test cameras
 _DROPPED_COLOUR = (140, 140, 140)  # registration views left out of the SfM (too little opacity)
@@ -218,7 +218,7 @@ def fused_scene(model: NerfuserModel, datamanager: Any = None) -> FusedScene:
     scene = FusedScene(nerfs)
     spec = getattr(datamanager, "spec", None)
     if spec is None and getattr(model.config, "fusion_spec", None) is not None:
-        from nerfuser_ns.data import FusionSpecError, read_fusion_spec
+        from nerfuser_ns.spec import FusionSpecError, read_fusion_spec
 
         try:
             spec = read_fusion_spec(model.config.fusion_spec, register=False)
@@ -427,7 +427,7 @@ class NerfuserSceneControl(ViewerControl):
     # --- scene ------------------------------------------------------------------------------------------------------
 
     def _draw(self, server: Any, scene: FusedScene) -> None:
-        from nerfuser_ns.model import _PALETTE
+        from nerfuser_ns.blending import SHARE_PALETTE as _PALETTE
 
         palette = (_PALETTE.numpy() * 255).round().astype(int)
         for i, nerf in enumerate(scene.nerfs):

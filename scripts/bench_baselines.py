@@ -42,7 +42,7 @@ from typing import Literal
 
 import tyro
 
-from nerfuser_ns.baselines import PCRConfig, PointCloudConfig
+from nerfuser_ns.bench.baselines import PCRConfig, PointCloudConfig
 from nerfuser_ns.files import atomic_path, write_text_atomic
 
 VARIANTS = ("icp", "fgr", "ransac", "fgr+icp", "ransac+icp")
@@ -226,8 +226,9 @@ class _SceneClouds:
     def get(self, kind: str, idx: int):
         import open3d as o3d
 
-        from nerfuser_ns import baselines, registration, sim3
-        from nerfuser_ns.renderers import SceneFrameRenderer
+        from nerfuser_ns import registration, sim3
+        from nerfuser_ns.bench import baselines
+        from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 
         if (kind, idx) in self.clouds:
             return self.clouds[(kind, idx)]
@@ -268,7 +269,8 @@ def main(cfg: BenchBaselinesConfig) -> None:
     import torch
     from rich.console import Console
 
-    from nerfuser_ns import baselines, evaluation, scenes, sim3
+    from nerfuser_ns import sim3
+    from nerfuser_ns.bench import baselines, evaluation, scenes
     from nerfuser_ns.registration import PoseSamplingConfig
     from nerfuser_ns.renderers import NerfstudioRenderer
 

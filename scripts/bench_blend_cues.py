@@ -9,9 +9,9 @@ is compared with the choice of each cue taken to its limit (gamma -> inf):
 * camera cue: the NeRF whose origin is nearest the camera (Nearest; IDW-2D's favourite);
 * surface cue: the NeRF whose own expected surface point is nearest its origin (IDW-3D; IDW-Sample near the surface).
 
-Each cue gets :func:`nerfuser_ns.metrics.selection_score` (1: always the better NeRF, 0.5: a coin flip, 0: always the
-worse; pixels count by how much the choice matters there) and the PSNR of its hard per-pixel selection, beside the
-per-pixel oracle's PSNR.
+Each cue gets :func:`nerfuser_ns.bench.metrics.selection_score` (1: always the better NeRF, 0.5: a coin flip, 0:
+always the worse; pixels count by how much the choice matters there) and the PSNR of its hard per-pixel selection,
+beside the per-pixel oracle's PSNR.
 
 The premise of the surface cue is tested on its own too: each pixel's ground-truth surface point (from the test
 capture's depth files) is placed along the axis from the camera's NeRF origin (u = 0) to the other NeRF's (u = 1),
@@ -102,8 +102,9 @@ def scene_cues(
     import torch
     from rich.progress import track
 
-    from nerfuser_ns import blending, evaluation, runs
-    from nerfuser_ns.metrics import selection_score
+    from nerfuser_ns import blending, runs
+    from nerfuser_ns.bench import evaluation
+    from nerfuser_ns.bench.metrics import selection_score
 
     models = [(n, runs.load_run(p).model) for n, p in zip(scene.captures, scene.configs, strict=True)]
     cams, target = scene.test_views(max_views=max_test_views)
@@ -120,7 +121,7 @@ def scene_cues(
                 part = rays[start : start + chunk]
                 per_nerf = model.nerf_samples(part)
                 for i in range(len(models)):
-                    model.reference_nerf = i
+                    model.set_blend(reference_nerf=i)
                     out = model.blend_samples(part, per_nerf)
                     rgb[i].append(out["rgb"])
                     depth[i].append(out["expected_depth"][..., 0])
@@ -228,8 +229,8 @@ def main(cfg: BenchBlendCuesConfig) -> None:
     import torch
     from rich.console import Console
 
-    from nerfuser_ns import evaluation
-    from nerfuser_ns.evaluation import SceneRuns
+    from nerfuser_ns.bench import evaluation
+    from nerfuser_ns.bench.evaluation import SceneRuns
     from nerfuser_ns.files import write_text_atomic
 
     console = Console()

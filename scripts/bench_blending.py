@@ -140,8 +140,9 @@ def main(cfg: BenchBlendingConfig) -> None:
     import torch
     from rich.console import Console
 
-    from nerfuser_ns import evaluation, runs, runtime
-    from nerfuser_ns.evaluation import SceneRuns
+    from nerfuser_ns import runs, runtime
+    from nerfuser_ns.bench import evaluation
+    from nerfuser_ns.bench.evaluation import SceneRuns
     from nerfuser_ns.files import write_text_atomic
 
     console = Console()

@@ -42,9 +42,9 @@ from PIL import Image
 from rich.console import Console
 
 from nerfuser_ns import runs, sim3
-from nerfuser_ns.data import write_fusion_spec
+from nerfuser_ns.bench.scenes import make_layout, render_camera, to_uint8, write_capture
 from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.scenes import make_layout, render_camera, to_uint8, write_capture
+from nerfuser_ns.spec import write_fusion_spec
 
 CONSOLE = Console(width=120)
 BIN = Path(sys.executable).parent

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import tyro
 
-from nerfuser_ns.evaluation import EvaluationError, SceneRuns
+from nerfuser_ns.bench.evaluation import EvaluationError, SceneRuns
+from nerfuser_ns.bench.ground_truth import score_registration
 from nerfuser_ns.files import write_text_atomic
 
 
@@ -152,8 +153,9 @@ def main(cfg: BenchRegistrationConfig) -> None:
         try:
             record = registration.register_runs(
                 configs, out, reg_cfg, work_dir=cfg.output.parent / "registration_work" / scene.name,
-                names=captures, gt_nerf_to_world=gt_nerf_to_world, data_overrides=scene.capture_dirs(),
+                names=captures, data_overrides=scene.capture_dirs(),
             )  # fmt: skip
+            record = score_registration(record, gt_nerf_to_world)
         except (RegistrationError, runs.RunLoadError) as e:
             results.append({"case": case, "status": "error", "error": str(e), "seconds": time.perf_counter() - t})
             _write(cfg, results)

@@ -58,7 +58,7 @@ class BuildDemoConfig:
 def main(cfg: BuildDemoConfig) -> None:
     from rich.console import Console
 
-    from nerfuser_ns.scenes import benchmark_params, generate_scene
+    from nerfuser_ns.bench.scenes import benchmark_params, generate_scene
 
     console = Console()
     t0 = time.perf_counter()
@@ -71,8 +71,8 @@ def main(cfg: BuildDemoConfig) -> None:
         return
     import torch
 
+    from nerfuser_ns.bench.training import train_captures
     from nerfuser_ns.files import write_text_atomic
-    from nerfuser_ns.training import train_captures
 
     torch.set_num_threads(cfg.threads or max(1, os.cpu_count() or 1))
     report = train_captures(

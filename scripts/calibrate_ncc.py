@@ -86,7 +86,7 @@ def main(cfg: CalibrateNccConfig) -> None:
     from rich.console import Console
 
     from nerfuser_ns import registration, sim3
-    from nerfuser_ns.evaluation import SceneRuns
+    from nerfuser_ns.bench.evaluation import SceneRuns
     from nerfuser_ns.files import write_text_atomic
     from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig
     from nerfuser_ns.renderers import NerfstudioRenderer

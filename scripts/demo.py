@@ -65,8 +65,10 @@ def main(cfg: DemoConfig) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from nerfuser_ns import metrics, runs, sim3
-    from nerfuser_ns.scenes import layout_from_ground_truth
+    from nerfuser_ns import runs, sim3
+    from nerfuser_ns.bench import metrics
+    from nerfuser_ns.bench.ground_truth import nerf_to_world_from_captures, score_registration
+    from nerfuser_ns.bench.scenes import layout_from_ground_truth
 
     console = Console()
     start = time.perf_counter()
@@ -147,7 +149,7 @@ def main(cfg: DemoConfig) -> None:
         for name, run in loaded.items()
     }
     if cfg.register:
-        from nerfuser_ns.data import read_registration
+        from nerfuser_ns.spec import read_registration
 
         reg_path = cfg.output_dir / "registration.json"
         command = [
@@ -155,8 +157,6 @@ def main(cfg: DemoConfig) -> None:
             "--configs", *[str(p) for p in configs.values()],
             "--output", str(reg_path),
             "--work-dir", str(cfg.output_dir / "registration_work"),
-            "--ground-truth", str(cfg.scene_dir / "ground_truth.json"),
-            "--gt-captures", *configs.keys(),
             "--sampling.source", "training",
             "--sampling.max-training-poses", str(cfg.registration_poses),
             "--sampling.width", "320", "--sampling.height", "240", "--sampling.fov-deg", "65",
@@ -167,7 +167,10 @@ def main(cfg: DemoConfig) -> None:
         if result.returncode != 0:
             raise SystemExit("demo: registration failed (see above); rerun with --no-register to skip it")
         entries = read_registration(reg_path)
-        record = json.loads(reg_path.read_text())
+        # scored against the truth afterwards: the registration never sees it
+        truth = nerf_to_world_from_captures([np.asarray(captures[name]["capture_to_world"]) for name in configs],
+                                            [loaded[name].data_to_nerf for name in configs])
+        record = score_registration(json.loads(reg_path.read_text()), truth)
         transforms_sets["estimated"] = {
             name: entry.nerf_to_common for name, entry in zip(configs, entries, strict=True)
         }

@@ -166,8 +166,8 @@ def _f(x) -> float:  # noqa: ANN001
 
 
 def build_scenes(cfg: EvaluateConfig, console) -> list[Scene]:  # noqa: ANN001
-    from nerfuser_ns import scenes, training
-    from nerfuser_ns.evaluation import PAPER_SETTINGS, SceneRuns
+    from nerfuser_ns.bench import scenes, training
+    from nerfuser_ns.bench.evaluation import PAPER_SETTINGS, SceneRuns
 
     dirs = {}
     for spec in cfg.dirs:
@@ -205,6 +205,7 @@ def build_scenes(cfg: EvaluateConfig, console) -> list[Scene]:  # noqa: ANN001
 
 def registration_case(cfg: EvaluateConfig, scene: Scene, seed: int, count: int, source: str, cache: Cache) -> dict:
     from nerfuser_ns import registration
+    from nerfuser_ns.bench.ground_truth import score_registration
     from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig, RegistrationError, SfMConfig
 
     w, h = cfg.render_size
@@ -231,9 +232,9 @@ def registration_case(cfg: EvaluateConfig, scene: Scene, seed: int, count: int, 
                 reg_cfg,
                 work_dir=work,
                 names=scene.runs.captures,
-                gt_nerf_to_world=scene.runs.nerf_to_world(),
                 data_overrides=scene.runs.capture_dirs(),
             )
+            rec = score_registration(rec, scene.runs.nerf_to_world())
         except RegistrationError as e:  # a run that cannot be loaded is a setup error: it propagates
             return {
                 "status": "error",
@@ -273,10 +274,12 @@ def baselines_case(cfg: EvaluateConfig, scene: Scene, seed: int, source: str, ca
     NeRFs' depth renders (``source='nerf'``) or the ground-truth renderer's (``'rgbd'``) at the same poses."""
     import numpy as np
 
-    from nerfuser_ns import baselines, sim3
+    from nerfuser_ns import sim3
+    from nerfuser_ns.bench import baselines
+    from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
+    from nerfuser_ns.bench.scenes import layout_from_ground_truth
     from nerfuser_ns.registration import PoseSamplingConfig, sample_poses
-    from nerfuser_ns.renderers import NerfstudioRenderer, SceneFrameRenderer
-    from nerfuser_ns.scenes import layout_from_ground_truth
+    from nerfuser_ns.renderers import NerfstudioRenderer
 
     w, h = cfg.render_size
     sampling = PoseSamplingConfig(
@@ -526,7 +529,7 @@ def _split(case: dict) -> dict | None:
 
 
 def _sweep(models, transforms, cams, target, gammas, tau) -> dict:  # noqa: ANN001
-    from nerfuser_ns import evaluation
+    from nerfuser_ns.bench import evaluation
 
     return {str(g): v for g, v in evaluation.gamma_sweep(models, transforms, cams, target, gammas, tau=tau).items()}
 
@@ -566,7 +569,8 @@ def main(cfg: EvaluateConfig) -> None:  # noqa: C901 - a linear sequence of repo
     import torch
     from rich.console import Console
 
-    from nerfuser_ns import evaluation, runs, runtime
+    from nerfuser_ns import runs, runtime
+    from nerfuser_ns.bench import evaluation
 
     if cfg.quick:
         cfg.apply_quick()

@@ -55,10 +55,10 @@ def main(config: MakeSceneConfig) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     try:
-        from nerfuser_ns.scenes import make_layout, write_scene
+        from nerfuser_ns.bench.scenes import make_layout, write_scene
     except ImportError:  # run from a source checkout without installing the package
         sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-        from nerfuser_ns.scenes import make_layout, write_scene
+        from nerfuser_ns.bench.scenes import make_layout, write_scene
 
     console = Console(stderr=True)
     try:

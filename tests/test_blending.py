@@ -8,12 +8,15 @@ import torch
 
 from nerfuser_ns.blending import (
     BLEND_METHODS,
+    BlendSettings,
     MergedSamples,
     apply_distance_test,
+    blend,
     camera_to_origin_distances,
     distance_mask,
     distance_ratio,
     distance_test,
+    expected_depth,
     idw_2d,
     idw_3d,
     idw_3d_weights,
@@ -503,3 +506,58 @@ def test_merged_samples_dataclass():
     )
     torch.testing.assert_close(ms.midpoints, torch.tensor([[0.5, 2.0]]))
     torch.testing.assert_close(ms.deltas, torch.tensor([[1.0, 2.0]]))
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# blend(): the one entry the model calls, against the reference functions (its twins)
+
+
+def _blend_inputs(n=3, r=40, k=8, seed=5):
+    starts, ends, p, rgbs, bg = random_nerf_samples(n, r, k, seed=seed)
+    o, d = rays(r, seed=seed + 1)
+    nerf_origins = torch.randn(n, 3, generator=torch.Generator().manual_seed(seed + 2), dtype=torch.float64) * 2
+    return starts, ends, p, rgbs, bg, o, d, nerf_origins
+
+
+@pytest.mark.parametrize("tau", [None, 1.5])
+@pytest.mark.parametrize("gamma", [0.5, 4.0])
+def test_blend_entry_matches_the_reference_functions(gamma, tau):
+    starts, ends, p, rgbs, bg, o, d, origins = _blend_inputs()
+    settings = BlendSettings(gamma=gamma, tau=tau)
+    out = blend(BLEND_METHODS, starts, ends, p, rgbs, bg, o, d, origins, settings, reference=2)
+    cam_d = camera_to_origin_distances(o, origins)
+    mids = 0.5 * (starts + ends)
+    rgb_i = render_samples(p, rgbs, bg).clamp(0, 1)
+    torch.testing.assert_close(out["nerf"]["rgb"], rgb_i[2])
+    torch.testing.assert_close(out["nearest"]["rgb"], nearest_blend(rgb_i, cam_d))
+    torch.testing.assert_close(out["idw-2d"]["rgb"], idw_2d(rgb_i, cam_d, gamma, tau))
+    exp_i = expected_depth(p, mids)
+    torch.testing.assert_close(out["idw-3d"]["rgb"], idw_3d(rgb_i, exp_i, o, d, origins, gamma, cam_d, tau))
+    # IDW-Sample, ray by ray: merge the samples of the NeRFs passing the distance test only (the others must not
+    # split the ray's intervals), then the paper's sample-wise IDW
+    keep = distance_mask(cam_d, tau)
+    got = out["idw-sample"]
+    for ray in range(starts.shape[1]):
+        ids = keep[:, ray].nonzero()[:, 0]
+        merged = merge_samples(starts[ids, ray : ray + 1], ends[ids, ray : ray + 1], p[ids, ray : ray + 1],
+                               rgbs[ids, ray : ray + 1])  # fmt: skip
+        dist, d_bg = merged_sample_distances(merged, o[ray : ray + 1], d[ray : ray + 1], origins[ids])
+        ref = idw_sample_blend(merged, dist, gamma, bg[ids, ray : ray + 1], d_bg)
+        torch.testing.assert_close(got["rgb"][ray : ray + 1], ref.rgb.clamp(0, 1))
+        torch.testing.assert_close(got["accumulation"][ray : ray + 1], ref.accumulation)
+        assert (got["share"][~keep[:, ray], ray] == 0).all()
+    for method in BLEND_METHODS:
+        share = out[method]["share"]
+        assert share.shape == (3, 40) and torch.isfinite(share).all()
+
+
+def test_blend_settings_are_checked_once_and_tau_zero_is_off():
+    s = BlendSettings(method="idw-2d", gamma=2.0, tau=0.0).checked()
+    assert s.tau is None and s.method == "idw-2d"
+    assert s.replace(gamma=3.0).gamma == 3.0 and s.gamma == 2.0  # frozen: a new value
+    for bad, match in (({"gamma": -1.0}, "gamma"), ({"gamma": float("nan")}, "gamma"), ({"tau": 0.5}, "tau"),
+                       ({"method": "idw-4d"}, "unknown blend method")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            s.replace(**bad)
+    with pytest.raises(ValueError, match="reference_nerf 3 out of range"):
+        s.replace(num_nerfs=2, reference_nerf=3)

@@ -18,7 +18,8 @@ from PIL import Image
 
 from nerfuser_ns import data as fdata
 from nerfuser_ns import sim3
-from nerfuser_ns.data import FusionSpecError, NerfEntry, read_fusion_spec, read_registration
+from nerfuser_ns import spec as fspec
+from nerfuser_ns.spec import FusionSpecError, NerfEntry, read_fusion_spec, read_registration
 
 T_B = sim3.make_sim3(np.eye(3)[[1, 0, 2]] * [[1], [-1], [1]], np.array([1.0, 2.0, 0.5]), 0.4)
 
@@ -73,7 +74,7 @@ def test_spec_with_minimal_registration(tmp_path, two_runs):
         ],
     )
     # runs listed in the other order, relative paths, one renamed: the spec's order and names win
-    spec_path = fdata.write_fusion_spec(
+    spec_path = fspec.write_fusion_spec(
         tmp_path / "fusion.json",
         [b.relative_to(tmp_path), a.relative_to(tmp_path)],
         registration="reg.json",
@@ -108,12 +109,12 @@ def test_registration_record_of_ns_nerfuser_register(tmp_path, two_runs):
     entries = read_registration(tmp_path / "registration.json")
     assert [e.name for e in entries] == ["a", "b"]
     np.testing.assert_allclose(entries[1].nerf_to_common, T_B)
-    spec = read_fusion_spec(fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b]))  # default registration.json
+    spec = read_fusion_spec(fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b]))  # default registration.json
     np.testing.assert_allclose(spec.transforms[1], T_B)
 
 
 def test_single_run_needs_no_registration(tmp_path, two_runs):
-    spec = read_fusion_spec(fdata.write_fusion_spec(tmp_path / "fusion.json", [two_runs[0]]))
+    spec = read_fusion_spec(fspec.write_fusion_spec(tmp_path / "fusion.json", [two_runs[0]]))
     assert len(spec.nerfs) == 1 and spec.registration_path is None
     np.testing.assert_array_equal(spec.nerfs[0].nerf_to_common, np.eye(4))
 
@@ -128,11 +129,11 @@ def test_missing_registration_runs_registration(tmp_path, two_runs, monkeypatch)
         calls.append((list(config_paths), Path(output), list(names)))
         configs.append(kwargs.get("config"))
         entries = [NerfEntry(n, Path(c), np.eye(4)) for n, c in zip(names, config_paths, strict=True)]
-        fdata.write_registration(output, entries)
+        fspec.write_registration(output, entries)
         return {}
 
     monkeypatch.setattr(registration, "register_runs", fake_register_runs)
-    spec_path = fdata.write_fusion_spec(tmp_path / "fusion.json", list(two_runs))
+    spec_path = fspec.write_fusion_spec(tmp_path / "fusion.json", list(two_runs))
     with pytest.raises(FusionSpecError, match="no registration file at .*run ns-nerfuser-register first"):
         read_fusion_spec(spec_path, register=False)
     assert not calls
@@ -233,7 +234,7 @@ def test_ns_train_with_a_bad_spec_writes_no_run(tmp_path, two_runs):
         ]
     }
     (tmp_path / "reg.json").write_text(json.dumps(reg))
-    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b], registration="reg.json")
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], registration="reg.json")
     # the trainer config refuses before writing config.yml
     config = nerfuser_config()
     config.data, config.output_dir = spec, tmp_path / "out"
@@ -277,7 +278,7 @@ def test_datamanager_poses_test_images_in_the_common_frame(tmp_path, two_runs):
     c2ws = [sim3.make_sim3(np.eye(3), np.array([0.1 * i, 0.0, 2.0]), 1.0) for i in range(3)]
     write_dataset(tmp_path / "test", c2ws)
     world_to_common = sim3.make_sim3(scene_yaw(0.3), np.array([0.5, -0.1, 0.2]), 2.5)
-    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b], test_data="test", test_to_common=world_to_common)
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], test_data="test", test_to_common=world_to_common)
     dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
     assert len(dm.train_dataset) == 3 and len(dm.eval_dataset) == 3
     expected = sim3.transform_poses(world_to_common, np.stack(c2ws))[:, :3, :4]
@@ -285,7 +286,7 @@ def test_datamanager_poses_test_images_in_the_common_frame(tmp_path, two_runs):
     # camera rotations stay orthonormal (the scale went into the positions only)
     R = dm.eval_dataset.cameras.camera_to_worlds[:, :3, :3]
     torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3).expand(3, 3, 3), atol=1e-5, rtol=0)
-    assert dm.train_dataset.metadata[fdata.METADATA_KEY].nerfs[1].name == "nerf1"
+    assert dm.train_dataset.metadata[fspec.METADATA_KEY].nerfs[1].name == "nerf1"
     cams = list(dm.fixed_indices_eval_dataloader)
     assert len(cams) == 3 and cams[2][1]["image"].shape == (6, 8, 3)
     camera, batch = dm.next_eval_image(0)
@@ -309,7 +310,7 @@ def test_test_images_with_applied_transform_keep_their_stored_poses(tmp_path, tw
     meta.update(applied_transform=[[0, 1, 0, 0.5], [1, 0, 0, 0], [0, 0, -1, 0.2]], applied_scale=3.0)
     (tmp_path / "test" / "transforms.json").write_text(json.dumps(meta))
     test_to_common = sim3.make_sim3(scene_yaw(-0.2), np.array([0.3, 0.1, -0.4]), 0.7)
-    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b], test_data="test", test_to_common=test_to_common)
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], test_data="test", test_to_common=test_to_common)
     dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
     expected = sim3.transform_poses(test_to_common, np.stack(c2ws))[:, :3, :4]
     np.testing.assert_allclose(dm.eval_dataset.cameras.camera_to_worlds.numpy(), expected, atol=1e-5)
@@ -323,7 +324,7 @@ def test_datamanager_without_test_images(tmp_path, two_runs):
             {"config": str(two_runs[1]), "transform": T_B.tolist()},
         ],
     )
-    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", list(two_runs))
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", list(two_runs))
     dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="inference")
     assert dm.eval_dataset is None
     assert len(dm.train_dataset) == 2  # placeholder cameras at the NeRF origins, for the viewer
@@ -351,7 +352,7 @@ def test_a_run_retrained_after_registration_is_refused(tmp_path, two_runs):
     (b.parent / "nerfstudio_models" / "step-000000019.ckpt").write_bytes(b"other weights")
     with pytest.raises(FusionSpecError, match=r"changed since it was registered \(registered step 9, now step 19"):
         read_registration(reg)
-    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b])
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b])
     with pytest.raises(FusionSpecError, match="re-run ns-nerfuser-register"):
         read_fusion_spec(spec, register=False)
     # same step, other content (a checkpoint overwritten in place) is refused too
@@ -378,7 +379,7 @@ def test_ns_train_with_bad_blend_settings_writes_no_run(tmp_path, two_runs, monk
     a, b = two_runs
     registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
                                                        {"config": str(b), "transform": T_B.tolist()}])  # fmt: skip
-    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b])
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b])
     for key, value in env.items():
         monkeypatch.setenv(key, value)
     config = nerfuser_config()
@@ -392,7 +393,8 @@ def test_ns_train_with_bad_blend_settings_writes_no_run(tmp_path, two_runs, monk
 
 
 def test_tau_zero_turns_the_distance_test_off_everywhere(monkeypatch):
-    from nerfuser_ns.model import BlendSettings, NerfuserModelConfig
+    from nerfuser_ns.blending import BlendSettings
+    from nerfuser_ns.model import NerfuserModelConfig
 
     assert BlendSettings.from_config(NerfuserModelConfig(tau=0.0), environ={}).tau is None
     assert BlendSettings.from_config(NerfuserModelConfig(), environ={"NERFUSER_TAU": "0"}).tau is None
@@ -406,8 +408,8 @@ def test_a_failed_automatic_registration_leaves_no_run(tmp_path, two_runs, monke
     def fail(*args, **kwargs):
         raise FusionSpecError("registration.json: automatic registration failed: no overlap (run ns-nerfuser-register)")
 
-    monkeypatch.setattr(fdata, "run_registration", fail)
-    spec = fdata.write_fusion_spec(tmp_path / "fusion.json", [a, b])
+    monkeypatch.setattr(fspec, "run_registration", fail)
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b])
     config = nerfuser_config()
     config.data, config.output_dir = spec, tmp_path / "out"
     config.set_timestamp()

@@ -16,11 +16,12 @@ import torch
 import yaml
 from nerfstudio.cameras.rays import RayBundle
 
-from nerfuser_ns import runs, scenes, sim3
+from nerfuser_ns import runs, sim3
+from nerfuser_ns.bench import scenes
+from nerfuser_ns.bench.training import train
 from nerfuser_ns.blending import BLEND_METHODS
-from nerfuser_ns.data import NerfEntry, write_fusion_spec, write_registration
 from nerfuser_ns.model import NerfuserModel, fuse_models, map_rays
-from nerfuser_ns.training import train
+from nerfuser_ns.spec import NerfEntry, write_fusion_spec, write_registration
 
 pytestmark = pytest.mark.slow
 

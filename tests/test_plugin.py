@@ -47,7 +47,7 @@ def test_stock_ns_train_and_ns_eval_work_offline(tmp_path):
     """With the plugin installed, stock ns-train trains and ns-eval loads (torch >= 2.6) with no network."""
     import json
 
-    from nerfuser_ns import scenes
+    from nerfuser_ns.bench import scenes
 
     layout = scenes.make_layout("object-centric", seed=5, num_views=10, num_test_views=1, width=32, height=24)
     scenes.write_scene(layout, tmp_path / "scene", supersample=1)

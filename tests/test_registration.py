@@ -21,8 +21,16 @@ import yaml
 from rich.console import Console
 
 from nerfuser_ns import registration as reg
-from nerfuser_ns import runs, scenes, sim3
-from nerfuser_ns.renderers import RenderBatch, Renderer, SceneFrameRenderer
+from nerfuser_ns import runs, sim3
+from nerfuser_ns.bench import scenes
+from nerfuser_ns.bench.ground_truth import (
+    ScoreCommand,
+    load_ground_truth_captures,
+    read_gt_transforms,
+    score_registration,
+)
+from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
+from nerfuser_ns.renderers import RenderBatch, Renderer
 from nerfuser_ns.sampling import sample_hemisphere_poses
 from nerfuser_ns.scripts import register as cli
 
@@ -58,7 +66,7 @@ def gt_of(layout, names=None) -> list[np.ndarray]:
 
 @pytest.fixture(scope="module")
 def oc_record(oc_layout, oc_renderers, work) -> dict:
-    return reg.register(oc_renderers, small_config(), work, gt_nerf_to_world=gt_of(oc_layout))
+    return score_registration(reg.register(oc_renderers, small_config(), work), gt_of(oc_layout))
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -178,7 +186,7 @@ def test_object_centric_two_nerfs_recovers_ground_truth(oc_record):
 
 def test_refinement_beats_the_camera_estimator(oc_layout, oc_renderers, oc_record, work):
     # Same renders and SfM (reused): only the solve differs.
-    plain = reg.register(oc_renderers, small_config(refine=False), work, gt_nerf_to_world=gt_of(oc_layout))
+    plain = score_registration(reg.register(oc_renderers, small_config(refine=False), work), gt_of(oc_layout))
     assert plain["refinement"] is None and plain["nerfs"][1]["refinement_change"] is None
     assert plain["sfm"]["reused"]
     g0, g = plain["nerfs"][1]["ground_truth"], oc_record["nerfs"][1]["ground_truth"]
@@ -203,18 +211,26 @@ def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderer
     for i, T in enumerate(gt_of(oc_layout)):
         (tmp_path / f"gt{i}.json").write_text(json.dumps({"nerf_to_world": T.tolist()}))
         gt.append(tmp_path / f"gt{i}.json")
-    rc, out, err = run_cli(tmp_path, oc_renderers, None, work_dir=work, gt_transforms=gt)
+    rc, out, err = run_cli(tmp_path, oc_renderers, None, work_dir=work)
     printed = capsys.readouterr().out
     assert rc == 0, err
     rec = reg.read_registration(out)
     np.testing.assert_allclose(rec["nerfs"][1]["T_to_reference"], oc_record["nerfs"][1]["T_to_reference"])
     np.testing.assert_array_equal(rec["nerfs"][1]["transform"], rec["nerfs"][1]["T_to_reference"])  # fusion reader
-    assert rec["nerfs"][1]["ground_truth"]["r_err_deg"] < 0.15
-    assert "capture_b" in printed and "r_err" in printed and "passed" in printed
+    assert "ground_truth" not in rec and "ground_truth" not in rec["nerfs"][1]  # registration never sees the truth
+    assert "capture_b" in printed and "passed" in printed
+    # the kit scores the file afterwards, into a copy
+    console = Console(record=True, width=200)
+    scored = ScoreCommand(out, gt_transforms=gt).main(console)
+    assert scored["nerfs"][1]["ground_truth"]["r_err_deg"] < 0.15 and "r_err" in console.export_text()
+    assert reg.read_registration(out.with_name(out.stem + "_scored.json"))["ground_truth"]["failure"] is False
+    assert "ground_truth" not in json.loads(out.read_text())  # the input is untouched
+    with pytest.raises(reg.RegistrationError, match="is the input registration file"):
+        ScoreCommand(out, gt_transforms=gt, output=out).main(console)
 
 
 def test_rerun_reuses_renders_and_sfm(oc_layout, oc_renderers, oc_record, work):
-    rec = reg.register(oc_renderers, small_config(), work, gt_nerf_to_world=gt_of(oc_layout))
+    rec = score_registration(reg.register(oc_renderers, small_config(), work), gt_of(oc_layout))
     assert all(n["renders_reused"] for n in rec["nerfs"]) and rec["sfm"]["reused"]
     assert rec["timings_s"]["features"] == 0.0 and rec["timings_s"]["render"] < 1.0
     # what the cached steps cost when they were made is still reported, equal to the first run's
@@ -225,8 +241,8 @@ def test_rerun_reuses_renders_and_sfm(oc_layout, oc_renderers, oc_record, work):
 
 
 def test_umeyama_and_reference_options(oc_layout, oc_renderers, oc_record, work):
-    rec = reg.register(oc_renderers, small_config(estimator="umeyama-ransac", reference=1), work,
-                       gt_nerf_to_world=gt_of(oc_layout))
+    rec = reg.register(oc_renderers, small_config(estimator="umeyama-ransac", reference=1), work)
+    rec = score_registration(rec, gt_of(oc_layout))
     assert rec["sfm"]["reused"]  # same renders, same SfM: only the solve differs
     assert rec["reference"]["index"] == 1
     np.testing.assert_allclose(rec["nerfs"][1]["T_to_reference"], np.eye(4), atol=1e-12)
@@ -246,7 +262,7 @@ def test_street_three_nerfs(work):
     renderers = [SceneFrameRenderer.from_layout(layout, c.name) for c in layout.captures]
     # 48 images over the exhaustive limit: exercises the pose-guided pair list
     config = small_config(sampling={"source": "training"}, sfm=reg.SfMConfig(exhaustive_max_images=40))
-    rec = reg.register(renderers, config, work, gt_nerf_to_world=gt_of(layout))
+    rec = score_registration(reg.register(renderers, config, work), gt_of(layout))
     assert rec["sfm"]["matching"] == "pose-guided pairs"
     assert len(rec["pairs"]) == 3
     checked = [p for p in rec["pairs"] if p["self_check"] is not None]
@@ -308,7 +324,7 @@ def test_automatic_sampling_without_datasets_uses_the_hemisphere(oc_renderers):
 def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypatch):
     tried = []
 
-    def once(renderers, config, work_dir, gt, console):
+    def once(renderers, config, work_dir, console):
         tried.append(config.sampling.source)
         if config.sampling.source == "training":
             raise reg.RegistrationError("a: its views form a separate SfM model")
@@ -395,7 +411,7 @@ def test_register_fails_when_the_estimate_is_wrong(
 def test_refinement_corrects_a_wrong_start(oc_layout, oc_renderers, oc_record, work, monkeypatch):
     # The bundle adjustment fits the image evidence, so a start 40 deg off still converges to the right answer.
     perturb_second_estimate(monkeypatch)
-    rec = reg.register(oc_renderers, small_config(), work, gt_nerf_to_world=gt_of(oc_layout))
+    rec = score_registration(reg.register(oc_renderers, small_config(), work), gt_of(oc_layout))
     assert rec["refinement"]["change"][1]["r_deg"] > 39
     np.testing.assert_allclose(rec["nerfs"][1]["T_to_reference"], oc_record["nerfs"][1]["T_to_reference"], atol=1e-5)
 
@@ -444,11 +460,11 @@ def test_missing_and_unreadable_configs(tmp_path, capsys):
 def test_ground_truth_inputs_are_checked(tmp_path):
     gt = tmp_path / "ground_truth.json"
     gt.write_text(json.dumps({"captures": [{"name": "capture_a", "capture_to_world": np.eye(4).tolist()}]}))
-    assert np.allclose(reg.load_ground_truth_captures(gt, ["capture_a"])[0], np.eye(4))
+    assert np.allclose(load_ground_truth_captures(gt, ["capture_a"])[0], np.eye(4))
     with pytest.raises(reg.RegistrationError, match="no capture named 'capture_z'"):
-        reg.load_ground_truth_captures(gt, ["capture_z"])
+        load_ground_truth_captures(gt, ["capture_z"])
     with pytest.raises(reg.RegistrationError, match="not a readable ground_truth.json"):
-        reg.load_ground_truth_captures(tmp_path / "nope.json", ["capture_a"])
+        load_ground_truth_captures(tmp_path / "nope.json", ["capture_a"])
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -458,7 +474,7 @@ def test_ground_truth_inputs_are_checked(tmp_path):
 @pytest.fixture(scope="module")
 def tiny_runs(tmp_path_factory):
     """One tiny nerfacto-cpu run (seconds of training) on capture_a of a tiny scene, and a copy of it elsewhere."""
-    from nerfuser_ns.training import train
+    from nerfuser_ns.bench.training import train
 
     layout = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
     root = tmp_path_factory.mktemp("tiny")
@@ -475,8 +491,7 @@ def test_real_command_on_tiny_nerfacto_runs(tiny_runs, tmp_path, monkeypatch, ca
     root, first, second = tiny_runs
     out = tmp_path / "registration.json"
     argv = ["ns-nerfuser-register", "--configs", str(first), str(second), "--output", str(out),
-            "--sampling.num-poses", "6", "--sampling.width", "64", "--sampling.height", "48",
-            "--ground-truth", str(root / "scene" / "ground_truth.json"), "--gt-captures", "capture_a", "capture_a"]
+            "--sampling.num-poses", "6", "--sampling.width", "64", "--sampling.height", "48"]
     monkeypatch.setattr(sys, "argv", argv)
     with pytest.raises(SystemExit) as exit_info:
         cli.entrypoint()
@@ -486,7 +501,8 @@ def test_real_command_on_tiny_nerfacto_runs(tiny_runs, tmp_path, monkeypatch, ca
     if exit_info.value.code == 0:
         rec = reg.read_registration(out)
         assert len(rec["nerfs"]) == 2 and rec["nerfs"][0]["config"] == str(first)
-        assert rec["nerfs"][1]["ground_truth"] is not None
+        scored = ScoreCommand(out, ground_truth=root / "scene", gt_captures=["capture_a", "capture_a"]).main()
+        assert scored["nerfs"][1]["ground_truth"] is not None
         assert rec["nerfs"][0]["checkpoint"] == runs.checkpoint_identity(first)  # which weights were registered
     else:
         assert_one_line_error(exit_info.value.code, out, err)
@@ -556,15 +572,14 @@ def test_mixed_3x4_and_4x4_ground_truth_transforms(tmp_path):
     T = sim3.make_sim3(np.eye(3), np.array([1.0, 2.0, 3.0]), 2.0)
     (tmp_path / "a.json").write_text(json.dumps(T[:3].tolist()))
     (tmp_path / "b.json").write_text(json.dumps({"nerf_to_world": T.tolist()}))
-    cmd = cli.RegisterCommand(gt_transforms=[tmp_path / "a.json", tmp_path / "b.json"])
-    gt = cmd._ground_truth([FakeRenderer("a", "noise"), FakeRenderer("b", "noise")])
+    gt = read_gt_transforms([tmp_path / "a.json", tmp_path / "b.json"])
     assert [g.shape for g in gt] == [(4, 4), (4, 4)]
     np.testing.assert_array_equal(gt[0], gt[1])
     sheared = T.copy()
     sheared[0, 1] = 0.5
     (tmp_path / "b.json").write_text(json.dumps(sheared.tolist()))
     with pytest.raises(reg.RegistrationError, match="b.json: nerf_to_world: the 3x3 block is not a scaled rotation"):
-        cmd._ground_truth([FakeRenderer("a", "noise"), FakeRenderer("b", "noise")])
+        read_gt_transforms([tmp_path / "a.json", tmp_path / "b.json"])
 
 
 def test_non_finite_sampling_settings_are_refused_before_rendering(tmp_path, capsys):

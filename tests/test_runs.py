@@ -11,8 +11,9 @@ import pytest
 import torch
 import yaml
 
-from nerfuser_ns import runs, runtime, scenes
-from nerfuser_ns.training import train
+from nerfuser_ns import runs, runtime
+from nerfuser_ns.bench import scenes
+from nerfuser_ns.bench.training import train
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Tests for nerfuser_ns.sampling: hemisphere poses, look_at, intrinsics."""
+"""Tests for nerfuser_ns.sampling: hemisphere poses and look_at."""
 
 from __future__ import annotations
 
@@ -7,13 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from nerfuser_ns.sampling import (
-    fov_from_intrinsics,
-    intrinsics_from_fov,
-    intrinsics_matrix,
-    look_at,
-    sample_hemisphere_poses,
-)
+from nerfuser_ns.sampling import look_at, sample_hemisphere_poses
 
 
 def _assert_valid_c2w(c2w: np.ndarray) -> None:
@@ -180,19 +174,3 @@ def test_hemisphere_target_on_camera_raises():
 
 # --------------------------------------------------------------------------------------------------------------------
 # intrinsics
-
-
-def test_intrinsics_from_fov():
-    fx, fy, cx, cy = intrinsics_from_fov(640, 480, 90.0)
-    assert (fx, fy, cx, cy) == pytest.approx((320.0, 320.0, 320.0, 240.0), abs=1e-9)
-    fx, fy, _, _ = intrinsics_from_fov(640, 480, 60.0, fov_axis="y")
-    assert fx == fy == pytest.approx(240.0 / math.tan(math.radians(30.0)), rel=1e-12)
-    assert fov_from_intrinsics(fx, 480) == pytest.approx(60.0, abs=1e-12)
-    K = intrinsics_matrix(100.0, 110.0, 50.0, 40.0)
-    np.testing.assert_array_equal(K, [[100, 0, 50], [0, 110, 40], [0, 0, 1]])
-
-
-@pytest.mark.parametrize("args", [(0, 10, 60), (10, -1, 60), (10, 10, 0), (10, 10, 180)])
-def test_intrinsics_bad_inputs(args):
-    with pytest.raises(ValueError):
-        intrinsics_from_fov(*args)

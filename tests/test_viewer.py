@@ -32,9 +32,9 @@ from nerfstudio.viewer import render_state_machine
 from PIL import Image
 
 from nerfuser_ns import registration, sim3
-from nerfuser_ns.data import write_fusion_spec
-from nerfuser_ns.model import _PALETTE
+from nerfuser_ns.blending import SHARE_PALETTE as _PALETTE
 from nerfuser_ns.renderers import RenderBatch
+from nerfuser_ns.spec import write_fusion_spec
 from nerfuser_ns.viewer import VISER_SCALE, ViewerSetupError, check_bind, load_fused_pipeline, start_viewer
 
 pytestmark = pytest.mark.slow

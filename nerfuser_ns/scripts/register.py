@@ -12,24 +12,20 @@ nothing.
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import tyro
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from nerfuser_ns.data import FusionSpecError, validate_sim3
 from nerfuser_ns.registration import (
     RegistrationConfig,
     RegistrationError,
     RegistrationFailed,
-    load_ground_truth_captures,
     register,
     write_registration,
 )
@@ -56,14 +52,6 @@ class RegisterCommand(RegistrationConfig):
     """Torch device the runs render on (default: cuda when torch sees a GPU, else cpu)."""
     eval_num_rays_per_chunk: int | None = None
     """Rays per forward pass when rendering (default: each run's own)."""
-    ground_truth: Path | None = None
-    """ground_truth.json of a generated scene, to report r/t/s errors (needs --gt-captures)."""
-    gt_captures: list[str] = field(default_factory=list)
-    """With --ground-truth: the capture each run was trained on, in --configs order."""
-    gt_transforms: list[Path] = field(default_factory=list)
-    """Instead of --ground-truth: per run, a JSON file with its NeRF-frame -> world SIM(3) (a 4x4 list, or
-    {"nerf_to_world": 4x4})."""
-
     def main(self, renderers: list | None = None) -> dict:
         """Register, write the file, print the summary. ``renderers`` replaces the runs of ``configs`` (tests)."""
         from nerfuser_ns.renderers import NerfstudioRenderer
@@ -81,12 +69,11 @@ class RegisterCommand(RegistrationConfig):
                                    data_override=self.data[i] if self.data else None)
                 for i, c in enumerate(self.configs)
             ]  # fmt: skip
-        gt = self._ground_truth(renderers)
         work_dir = self.work_dir or self.output.with_name(self.output.stem + "_work")
         self._check_outputs(work_dir, renderers)
         config = RegistrationConfig(**{f: getattr(self, f) for f in RegistrationConfig.__dataclass_fields__})
         try:
-            record = register(renderers, config, work_dir, gt_nerf_to_world=gt, console=CONSOLE)
+            record = register(renderers, config, work_dir, console=CONSOLE)
         except RegistrationFailed as e:
             # Keep the rejected solution for inspection (threshold calibration), never as the output.
             write_registration(e.record, Path(work_dir) / "rejected_registration.json")
@@ -121,54 +108,17 @@ class RegisterCommand(RegistrationConfig):
             if not os.access(parent, os.W_OK | os.X_OK):
                 raise RegistrationError(f"{what} {path.parent}: {parent} is not writable; pass another path")
 
-    def _ground_truth(self, renderers) -> list[np.ndarray] | None:
-        if self.ground_truth is not None and self.gt_transforms:
-            raise RegistrationError("pass either --ground-truth with --gt-captures or --gt-transforms, not both")
-        if self.ground_truth is not None:
-            if len(self.gt_captures) != len(renderers):
-                raise RegistrationError(
-                    f"--gt-captures names {len(self.gt_captures)} captures for {len(renderers)} runs; name one per run"
-                )
-            capture_to_world = load_ground_truth_captures(self.ground_truth, self.gt_captures)
-            # The run's NeRF frame is its dataset (capture) frame mapped by the dataparser: world <- capture <- NeRF.
-            return [
-                c2w if r.data_to_nerf is None else c2w @ np.linalg.inv(r.data_to_nerf)
-                for c2w, r in zip(capture_to_world, renderers, strict=True)
-            ]
-        if self.gt_transforms:
-            if len(self.gt_transforms) != len(renderers):
-                raise RegistrationError(
-                    f"--gt-transforms has {len(self.gt_transforms)} files for {len(renderers)} runs; pass one per run"
-                )
-            out = []
-            for path in self.gt_transforms:
-                try:
-                    data = json.loads(Path(path).read_text())
-                    T = np.asarray(data["nerf_to_world"] if isinstance(data, dict) else data, dtype=np.float64)
-                except (OSError, ValueError, KeyError, TypeError) as e:
-                    raise RegistrationError(f"{path}: unreadable ground-truth transform ({type(e).__name__})") from None
-                try:  # a "truth" that is not a SIM(3) (sheared, mirrored) would score every result wrong
-                    out.append(validate_sim3(T, f"{path}: nerf_to_world"))
-                except FusionSpecError as e:
-                    raise RegistrationError(str(e)) from None
-            return out
-        return None
-
 
 def _fmt(x, spec: str = ".3g") -> str:
     return "-" if x is None else format(x, spec)
 
 
 def print_summary(record: dict, console: Console = CONSOLE) -> None:
-    """Rich tables: per NeRF (views, scale, residuals, ground-truth errors) and per pair (overlap, self-check)."""
-    has_gt = record.get("ground_truth") is not None
+    """Rich tables: per NeRF (views, scale, residuals) and per pair (overlap, self-check)."""
     table = Table(title=f"Registration into the frame of {record['reference']['name']}")
     for col in ("NeRF", "rendered", "kept", "registered", "scale", "scale spread", "rot res (deg)", "centre res",
                 "estimator"):
         table.add_column(col, justify="left" if col in ("NeRF", "estimator") else "right")
-    if has_gt:
-        for col in ("r_err (deg)", "t_err", "s_err", "ok"):
-            table.add_column(col, justify="right")
     for i, n in enumerate(record["nerfs"]):
         v, res = n["views"], n["residuals"]
         row = [
@@ -176,10 +126,6 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
             _fmt(n["scale_spread"], ".2e"), _fmt(res["rotation_deg_median"], ".3f"), _fmt(res["centre_median"], ".2e"),
             n["estimator"] + (" + BA" if n.get("refinement_change") and i != record["reference"]["index"] else ""),
         ]
-        if has_gt:
-            g = n["ground_truth"]
-            row += [_fmt(g["r_err_deg"], ".4f"), _fmt(g["t_err"], ".2e"), _fmt(g["s_err"], ".2e"),
-                    "[red]FAIL[/]" if g["failure"] else "[green]ok[/]"]
         table.add_row(*row)
     console.print(table)
     pairs = Table(title="NeRF pairs")
@@ -212,8 +158,6 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         for k, v in t.items()
     ]  # fmt: skip
     console.print("time (s): " + ", ".join(parts))
-    if has_gt and record["ground_truth"]["failure"]:
-        console.print("[bold yellow]ground truth: the registration is a failure by the paper's rule[/]")
 
 
 def run(cmd: RegisterCommand, renderers: list | None = None) -> int:

@@ -97,8 +97,8 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def entrypoint() -> None:
     """Entry point of ``ns-nerfuser-view``."""
-    from nerfuser_ns.data import FusionSpecError
     from nerfuser_ns.runs import RunLoadError
+    from nerfuser_ns.spec import FusionSpecError
     from nerfuser_ns.viewer import ViewerSetupError
 
     command = tyro.cli(ViewCommand)

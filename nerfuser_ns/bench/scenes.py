@@ -45,6 +45,10 @@ from jaxtyping import Bool, Float, Int
 from PIL import Image
 from torch import Tensor
 
+from nerfuser_ns.cameras import ArrayOrTensor, Intrinsics, camera_rays, check_positive_int, supersample_offsets
+from nerfuser_ns.sampling import look_at
+from nerfuser_ns.sim3 import decompose_sim3, invert_sim3, make_sim3, transform_poses
+
 FORMAT_VERSION = 1
 _NO_BOTTOM = ("-y", "+x", "+y", "-x", "top")
 LayoutName = Literal["object-centric", "street", "drive"]
@@ -76,141 +80,10 @@ _LIGHT_DIR = (0.35, 0.25, 0.9)  # fixed directional light (normalised at use)
 _AMBIENT = 0.45
 _DIFFUSE = 0.55
 
-ArrayOrTensor = np.ndarray | Tensor
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# SIM(3) helpers
-# ----------------------------------------------------------------------------------------------------------------
-
-
-def sim3_matrix(scale: float, rotation: Float[np.ndarray, "3 3"], translation: Float[np.ndarray, "3"]) -> np.ndarray:
-    """Builds ``T = [[s R, t], [0, 0, 0, 1]]`` (float64 [4, 4])."""
-    T = np.eye(4)
-    T[:3, :3] = scale * np.asarray(rotation, dtype=np.float64)
-    T[:3, 3] = np.asarray(translation, dtype=np.float64)
-    return T
-
-
-def sim3_decompose(T: Float[np.ndarray, "4 4"]) -> tuple[float, np.ndarray, np.ndarray]:
-    """Splits a SIM(3) matrix into (scale, rotation [3, 3], translation [3]); scale = cube root of det."""
-    T = np.asarray(T, dtype=np.float64)
-    scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
-    return scale, T[:3, :3] / scale, T[:3, 3].copy()
-
-
-def sim3_inverse(T: Float[np.ndarray, "4 4"]) -> np.ndarray:
-    """Inverse of a SIM(3) matrix: ``[[R^T / s, -R^T t / s], [0, 1]]``."""
-    s, R, t = sim3_decompose(T)
-    return sim3_matrix(1.0 / s, R.T, -R.T @ t / s)
-
-
-def transform_poses(T: Float[np.ndarray, "4 4"], c2w: Float[np.ndarray, "*bs 4 4"]) -> np.ndarray:
-    """Maps camera-to-world poses from frame A to frame B under the SIM(3) ``T`` (A -> B).
-
-    Rotation ``R_T R_c`` (stays orthonormal), translation ``s R_T t_c + t_T``. Accepts [..., 3, 4] or [..., 4, 4];
-    returns float64 [..., 4, 4].
-    """
-    s, R, t = sim3_decompose(T)
-    c2w = np.asarray(c2w, dtype=np.float64)
-    out = np.zeros(c2w.shape[:-2] + (4, 4))
-    out[..., :3, :3] = R @ c2w[..., :3, :3]
-    out[..., :3, 3] = s * np.einsum("ij,...j->...i", R, c2w[..., :3, 3]) + t
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def yaw_rotation(yaw: float) -> np.ndarray:
     """Rotation by ``yaw`` radians about +z (float64 [3, 3])."""
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def look_at(
-    positions: Float[np.ndarray, "n 3"], targets: Float[np.ndarray, "n 3"], up: Sequence[float] = (0.0, 0.0, 1.0)
-) -> np.ndarray:
-    """OpenGL camera-to-world poses (float64 [n, 4, 4]) at ``positions`` looking at ``targets``, no roll."""
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
-    forward = targets - positions
-    forward /= np.linalg.norm(forward, axis=-1, keepdims=True)
-    right = np.cross(forward, np.asarray(up, dtype=np.float64))
-    right_norm = np.linalg.norm(right, axis=-1, keepdims=True)
-    if np.any(right_norm < 1e-6):
-        raise ValueError("look_at: viewing direction parallel to the up vector")
-    right /= right_norm
-    cam_up = np.cross(right, forward)
-    c2w = np.zeros((len(positions), 4, 4))
-    c2w[:, :3, 0], c2w[:, :3, 1], c2w[:, :3, 2] = right, cam_up, -forward
-    c2w[:, :3, 3] = positions
-    c2w[:, 3, 3] = 1.0
-    return c2w
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Cameras
-# ----------------------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels (nerfstudio convention: principal point in pixel units, pixel centres at +0.5)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    @classmethod
-    def from_fov(cls, width: int, height: int, hfov_deg: float) -> "Intrinsics":
-        """Square pixels, centred principal point, horizontal field of view ``hfov_deg``."""
-        _check_positive_int("width", width)
-        _check_positive_int("height", height)
-        if not 1.0 <= hfov_deg <= 170.0:
-            raise ValueError(f"horizontal field of view must be in [1, 170] degrees, got {hfov_deg}")
-        f = 0.5 * width / math.tan(math.radians(hfov_deg) / 2)
-        return cls(fx=f, fy=f, cx=width / 2, cy=height / 2, width=width, height=height)
-
-
-def camera_rays(
-    c2w: ArrayOrTensor,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    width: int,
-    height: int,
-    offsets: Sequence[tuple[float, float]] = ((0.5, 0.5),),
-) -> tuple[Float[Tensor, "h w k 3"], Float[Tensor, "h w k 3"]]:
-    """Unit-direction rays (float64) of one camera; ``offsets`` are (x, y) sub-pixel positions within each pixel.
-
-    Directions follow nerfstudio: camera-space ``((col + ox - cx) / fx, -(row + oy - cy) / fy, -1)``, normalised.
-    """
-    c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float64) if not isinstance(c2w, Tensor) else c2w)
-    c2w_t = c2w_t.to(torch.float64)
-    if c2w_t.shape not in ((3, 4), (4, 4)):
-        raise ValueError(f"c2w must be [3, 4] or [4, 4], got {tuple(c2w_t.shape)}")
-    rows = torch.arange(height, dtype=torch.float64)[:, None, None]
-    cols = torch.arange(width, dtype=torch.float64)[None, :, None]
-    off = torch.as_tensor(offsets, dtype=torch.float64)  # [k, 2]
-    x = (cols + off[:, 0] - cx) / fx
-    y = -(rows + off[:, 1] - cy) / fy
-    x, y = torch.broadcast_tensors(x, y)
-    d_cam = torch.stack([x, y, -torch.ones_like(x)], dim=-1)  # [h, w, k, 3]
-    d_cam = d_cam / torch.linalg.norm(d_cam, dim=-1, keepdim=True)
-    directions = d_cam @ c2w_t[:3, :3].T
-    directions = directions / torch.linalg.norm(directions, dim=-1, keepdim=True)
-    origins = c2w_t[:3, 3].expand_as(directions)
-    return origins, directions
-
-
-def supersample_offsets(n: int) -> list[tuple[float, float]]:
-    """Regular n x n sub-pixel grid (stratified centres) used for anti-aliasing."""
-    _check_positive_int("supersample", n)
-    grid = [(i + 0.5) / n for i in range(n)]
-    return [(ox, oy) for oy in grid for ox in grid]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -739,8 +612,8 @@ def render(
     Colour averages a ``supersample`` x ``supersample`` grid of rays per pixel (anti-aliasing); depth, mask and
     object id come from the pixel-centre ray, the ray nerfstudio casts for that pixel.
     """
-    _check_positive_int("width", width)
-    _check_positive_int("height", height)
+    check_positive_int("width", width)
+    check_positive_int("height", height)
     offsets = supersample_offsets(supersample)
     centre_in_grid = supersample % 2 == 1  # odd grids contain the pixel centre already
     if not centre_in_grid:
@@ -814,7 +687,7 @@ class Capture:
     @property
     def c2w_capture(self) -> np.ndarray:
         """Poses in the capture's own frame (what transforms.json stores)."""
-        return transform_poses(sim3_inverse(self.capture_to_world), self.c2w_world)
+        return transform_poses(invert_sim3(self.capture_to_world), self.c2w_world)
 
 
 @dataclass
@@ -840,7 +713,7 @@ def normalising_sim3(positions: Float[np.ndarray, "n 3"], yaw: float) -> np.ndar
     scale = float(np.linalg.norm(positions - centre, axis=-1).mean())
     if scale <= 0:
         raise ValueError("capture cameras must not all coincide")
-    return sim3_matrix(scale, yaw_rotation(yaw), centre)
+    return make_sim3(yaw_rotation(yaw), centre, scale)
 
 
 @dataclass
@@ -863,20 +736,15 @@ class LayoutParams:
     def validate(self) -> None:
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
-        _check_positive_int("num_views", self.num_views, minimum=4)
-        _check_positive_int("num_test_views", self.num_test_views, minimum=1)
-        _check_positive_int("width", self.width, minimum=8)
-        _check_positive_int("height", self.height, minimum=8)
-        _check_positive_int("num_captures", self.num_captures, minimum=2)
+        check_positive_int("num_views", self.num_views, minimum=4)
+        check_positive_int("num_test_views", self.num_test_views, minimum=1)
+        check_positive_int("width", self.width, minimum=8)
+        check_positive_int("height", self.height, minimum=8)
+        check_positive_int("num_captures", self.num_captures, minimum=2)
         if not 10.0 <= self.hfov_deg <= 120.0:
             raise ValueError(f"hfov_deg must be in [10, 120], got {self.hfov_deg}")
         if not 4.0 <= self.texels_per_metre <= 1024.0:
             raise ValueError(f"texels_per_metre must be in [4, 1024], got {self.texels_per_metre}")
-
-
-def _check_positive_int(name: str, value, minimum: int = 1) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
 
 def _rng(seed: int, stream: int) -> np.random.Generator:
@@ -1224,7 +1092,7 @@ def write_capture(
     (folder / "images").mkdir(exist_ok=True)
     (folder / "depths").mkdir(exist_ok=True)
     T = np.eye(4) if world_frame else capture.capture_to_world
-    scale = sim3_decompose(T)[0]
+    scale = float(decompose_sim3(T)[2])
     poses = capture.c2w_world if world_frame else capture.c2w_capture
     frames = []
     for i in range(capture.num_views):
@@ -1259,14 +1127,14 @@ def ground_truth_dict(layout: SceneLayout, supersample: int) -> dict:
     """The content of ``ground_truth.json`` (see :func:`write_scene`)."""
     captures = []
     for cap in layout.captures:
-        s, R, t = sim3_decompose(cap.capture_to_world)
+        R, t, s = decompose_sim3(cap.capture_to_world)
         captures.append({
             "name": cap.name,
             "path": cap.name,
             "num_views": cap.num_views,
             "focus": cap.focus,
             "capture_to_world": _rounded(cap.capture_to_world),
-            "scale": round(s, 12),
+            "scale": round(float(s), 12),
             "rotation": _rounded(R),
             "translation": _rounded(t),
         })
@@ -1305,7 +1173,7 @@ def write_scene(
     replaced only if it is empty or holds a previous scene (has ground_truth.json). ``progress`` is called once per
     rendered frame. Same layout and arguments give byte-identical files.
     """
-    _check_positive_int("supersample", supersample)
+    check_positive_int("supersample", supersample)
     output_dir = Path(output_dir).absolute()
     if output_dir.exists():
         if not output_dir.is_dir():

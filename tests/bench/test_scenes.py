@@ -13,7 +13,9 @@ import pytest
 import torch
 from PIL import Image
 
-from nerfuser_ns import scenes as S
+from nerfuser_ns import sim3
+from nerfuser_ns.bench import scenes as S
+from nerfuser_ns.cameras import Intrinsics, camera_rays
 
 SMALL = dict(num_views=6, num_test_views=3, width=48, height=36, texels_per_metre=32.0)
 
@@ -39,8 +41,11 @@ def drive() -> S.SceneLayout:
 
 
 def _file_digests(folder: Path) -> dict:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -52,25 +57,25 @@ def test_capture_frame_pose_maps_to_same_render(room: S.SceneLayout):
     """A view posed in the capture frame and mapped through capture_to_world renders exactly the world view."""
     for cap in room.captures:
         T = cap.capture_to_world
-        s = S.sim3_decompose(T)[0]
+        s = float(sim3.decompose_sim3(T)[2])
         for i in (0, 3):
             world = S.render_camera(room.scene, cap.c2w_world[i], cap.intrinsics)
-            mapped_pose = S.transform_poses(T, cap.c2w_capture[i])
+            mapped_pose = sim3.transform_poses(T, cap.c2w_capture[i])
             mapped = S.render_camera(room.scene, mapped_pose, cap.intrinsics)
             torch.testing.assert_close(mapped.rgb, world.rgb, atol=1e-5, rtol=0)
             assert torch.equal(mapped.mask, world.mask)
             # Depth in capture units (world / s) scaled back by s is the world depth.
             torch.testing.assert_close((mapped.depth / s) * s, world.depth, atol=1e-9, rtol=1e-9)
             # Same ray in the capture frame: its hit point maps to the world hit point.
-            o, d = S.camera_rays(cap.c2w_capture[i], **_intr_kwargs(cap.intrinsics))
+            o, d = camera_rays(cap.c2w_capture[i], **_intr_kwargs(cap.intrinsics))
             p_cap = (o + (world.depth / s)[..., None, None] * d)[:, :, 0][world.mask].numpy()
-            p_world = (p_cap * s) @ S.sim3_decompose(T)[1].T + T[:3, 3]
-            o_w, d_w = S.camera_rays(cap.c2w_world[i], **_intr_kwargs(cap.intrinsics))
+            p_world = (p_cap * s) @ sim3.decompose_sim3(T)[0].T + T[:3, 3]
+            o_w, d_w = camera_rays(cap.c2w_world[i], **_intr_kwargs(cap.intrinsics))
             expected = (o_w + world.depth[..., None, None] * d_w)[:, :, 0][world.mask].numpy()
             np.testing.assert_allclose(p_world, expected, atol=1e-9)
 
 
-def _intr_kwargs(k: S.Intrinsics) -> dict:
+def _intr_kwargs(k: Intrinsics) -> dict:
     return dict(fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width=k.width, height=k.height)
 
 
@@ -79,7 +84,7 @@ def test_capture_frame_normalisation(room: S.SceneLayout):
         centres = cap.c2w_capture[:, :3, 3]
         np.testing.assert_allclose(centres.mean(0), 0.0, atol=1e-12)
         assert np.linalg.norm(centres, axis=-1).mean() == pytest.approx(1.0, abs=1e-12)
-        s, R, t = S.sim3_decompose(cap.capture_to_world)
+        R, t, s = sim3.decompose_sim3(cap.capture_to_world)
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
         np.testing.assert_allclose(R[:, 2], [0, 0, 1], atol=1e-12)  # yaw only: +z stays up
         assert np.linalg.det(R) == pytest.approx(1.0)
@@ -88,23 +93,10 @@ def test_capture_frame_normalisation(room: S.SceneLayout):
         np.testing.assert_allclose(Rc @ np.swapaxes(Rc, 1, 2), np.broadcast_to(np.eye(3), Rc.shape), atol=1e-12)
 
 
-def test_sim3_helpers_roundtrip():
-    rng = np.random.default_rng(0)
-    T = S.sim3_matrix(2.5, S.yaw_rotation(0.7), rng.normal(size=3))
-    np.testing.assert_allclose(S.sim3_inverse(T) @ T, np.eye(4), atol=1e-12)
-    poses = S.look_at(rng.normal(size=(4, 3)), rng.normal(size=(4, 3)))
-    back = S.transform_poses(S.sim3_inverse(T), S.transform_poses(T, poses))
-    np.testing.assert_allclose(back, poses, atol=1e-12)
-    # The convention: rotation R_T R_c, translation s R_T t_c + t_T.
-    mapped = S.transform_poses(T, poses)
-    np.testing.assert_allclose(mapped[:, :3, :3], S.yaw_rotation(0.7) @ poses[:, :3, :3], atol=1e-12)
-    np.testing.assert_allclose(mapped[:, :3, 3], (T[:3, :3] @ poses[:, :3, 3].T).T + T[:3, 3], atol=1e-12)
-
-
 def test_render_rays_matches_render(room: S.SceneLayout):
     cap = room.test
     out = S.render_camera(room.scene, cap.c2w_world[0], cap.intrinsics, supersample=1)
-    o, d = S.camera_rays(cap.c2w_world[0], **_intr_kwargs(cap.intrinsics))
+    o, d = camera_rays(cap.c2w_world[0], **_intr_kwargs(cap.intrinsics))
     hits = S.render_rays(room.scene, o[:, :, 0], 3.0 * d[:, :, 0])  # non-unit directions: depth is the ray parameter
     torch.testing.assert_close(hits.rgb, out.rgb)
     torch.testing.assert_close(hits.depth * 3.0, out.depth)
@@ -127,13 +119,14 @@ def test_dataset_roundtrip(room: S.SceneLayout, room_dir: Path):
     assert gt["test"]["path"] == "test"
     for cap_gt, cap in zip(gt["captures"], room.captures, strict=True):
         T = np.array(cap_gt["capture_to_world"])
-        np.testing.assert_allclose(T, S.sim3_matrix(cap_gt["scale"], cap_gt["rotation"], cap_gt["translation"]),
-                                   atol=1e-11)
+        np.testing.assert_allclose(
+            T, sim3.make_sim3(cap_gt["rotation"], cap_gt["translation"], cap_gt["scale"]), atol=1e-11
+        )
         tf = json.loads((room_dir / cap_gt["path"] / "transforms.json").read_text())
         assert tf["camera_model"] == "OPENCV" and (tf["w"], tf["h"]) == (48, 36)
         assert tf["depth_unit_scale_factor"] == 0.001
         poses = np.array([f["transform_matrix"] for f in tf["frames"]])
-        np.testing.assert_allclose(S.transform_poses(T, poses), cap.c2w_world, atol=1e-9)
+        np.testing.assert_allclose(sim3.transform_poses(T, poses), cap.c2w_world, atol=1e-9)
         for i in (0, len(tf["frames"]) - 1):
             frame = tf["frames"][i]
             out = S.render_camera(room.scene, cap.c2w_world[i], cap.intrinsics)
@@ -183,13 +176,16 @@ def test_seed_determinism(room: S.SceneLayout):
 
 
 def test_object_centric_captures_overlap():
-    lay = S.make_layout("object-centric", seed=0, num_views=12, num_test_views=4, width=40, height=30,
-                        texels_per_metre=16.0)
+    lay = S.make_layout(
+        "object-centric", seed=0, num_views=12, num_test_views=4, width=40, height=30, texels_per_metre=16.0
+    )
     ids = {name: lay.scene.object_index(name) for name in ("object1", "object2")}
 
     def fraction_seeing(cap, obj):
-        seen = [(S.render_camera(lay.scene, c2w, cap.intrinsics, supersample=1).object_id == ids[obj]).float().mean()
-                for c2w in cap.c2w_world]
+        seen = [
+            (S.render_camera(lay.scene, c2w, cap.intrinsics, supersample=1).object_id == ids[obj]).float().mean()
+            for c2w in cap.c2w_world
+        ]
         return torch.stack(seen)
 
     a_sees_1, a_sees_2 = fraction_seeing(lay.captures[0], "object1"), fraction_seeing(lay.captures[0], "object2")
@@ -204,7 +200,7 @@ def _surface_points(lay: S.SceneLayout, cap: S.Capture, stride: int = 4) -> np.n
     pts = []
     for c2w in cap.c2w_world:
         out = S.render_camera(lay.scene, c2w, cap.intrinsics, supersample=1)
-        o, d = S.camera_rays(c2w, **_intr_kwargs(cap.intrinsics))
+        o, d = camera_rays(c2w, **_intr_kwargs(cap.intrinsics))
         p = (o + out.depth[..., None, None] * d)[::stride, ::stride, 0][out.mask[::stride, ::stride]]
         pts.append(p.numpy())
     return np.concatenate(pts)
@@ -323,9 +319,13 @@ def test_bad_render_arguments(room: S.SceneLayout):
 
 
 def test_script_reports_bad_values(tmp_path: Path):
-    script = Path(__file__).resolve().parents[1] / "scripts" / "make_scene.py"
-    res = subprocess.run([sys.executable, str(script), "--width", "-5", "--output-dir", str(tmp_path / "x")],
-                         capture_output=True, text=True, timeout=120)
+    script = Path(__file__).resolve().parents[2] / "scripts" / "make_scene.py"
+    res = subprocess.run(
+        [sys.executable, str(script), "--width", "-5", "--output-dir", str(tmp_path / "x")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 2
     assert "width must be an integer" in res.stderr
     assert not (tmp_path / "x").exists()

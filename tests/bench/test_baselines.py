@@ -11,12 +11,15 @@ import open3d as o3d
 import pytest
 import torch
 
-from nerfuser_ns import baselines as bl
-from nerfuser_ns import runs, scenes, sim3
-from nerfuser_ns.renderers import RenderBatch, SceneFrameRenderer
+from nerfuser_ns import runs, sim3
+from nerfuser_ns.bench import baselines as bl
+from nerfuser_ns.bench import scenes
+from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
+from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.renderers import RenderBatch
 from nerfuser_ns.sampling import sample_hemisphere_poses
 
-INTR = scenes.Intrinsics.from_fov(128, 96, 65.0)
+INTR = Intrinsics.from_fov(128, 96, 65.0)
 # A large similarity (rotation 119 deg, scale 1.7) and a small one (3 deg, 3.7 cm, scale 1.1); frame src -> frame tgt.
 T_LARGE = sim3.make_sim3(sim3.so3_exp(np.array([0.3, -0.5, 2.0])), np.array([0.8, -0.4, 0.3]), 1.7)
 T_SMALL = sim3.make_sim3(sim3.so3_exp(np.radians(3.0) * np.array([0.6, 0.0, 0.8])), np.array([0.03, -0.02, 0.01]), 1.1)
@@ -317,8 +320,8 @@ def test_bad_depth_arrays():
 
 def test_nerfacto_depth_renders_become_a_cloud_in_the_nerf_frame(tmp_path):
     """NerfstudioRenderer's depth is nerfacto's ``depth`` output (ray distance); the cloud is its back-projection."""
+    from nerfuser_ns.bench.training import train
     from nerfuser_ns.renderers import NerfstudioRenderer
-    from nerfuser_ns.training import train
 
     tiny = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
     scenes.write_scene(tiny, tmp_path / "scene", supersample=1)
@@ -328,7 +331,7 @@ def test_nerfacto_depth_renders_become_a_cloud_in_the_nerf_frame(tmp_path):
     # Hemisphere poses: training_poses() would load the run with its dataset, a path that (unlike the model-only one)
     # does not replay the step-dependent proposal anneal, which changes the depth of this 6-step run.
     c2w = sample_hemisphere_poses(2, radius=1.0)
-    intr = scenes.Intrinsics.from_fov(32, 24, 65.0)
+    intr = Intrinsics.from_fov(32, 24, 65.0)
     batch = bl.render_rgbd(renderer, c2w, intr)
     assert batch.depth.shape == (2, 24, 32) and np.isfinite(batch.depth).all() and (batch.depth > 0).all()
     cams = runs.make_cameras(c2w[:, :3], intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)

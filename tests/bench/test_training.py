@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from nerfuser_ns import scenes, training
+from nerfuser_ns.bench import scenes, training
 
 pytestmark = pytest.mark.slow
 

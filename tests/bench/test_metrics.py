@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from nerfuser_ns.metrics import image_metrics, selection_score
+from nerfuser_ns.bench.metrics import image_metrics, selection_score
 
 
 def test_psnr_of_known_error_and_identity():

@@ -12,14 +12,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nerfuser_ns import evaluation, metrics, runs, scenes, sim3
-from nerfuser_ns.data import NerfEntry, write_registration
-from nerfuser_ns.evaluation import EvaluationError, SceneRuns
-from nerfuser_ns.training import train
+from nerfuser_ns import runs, sim3
+from nerfuser_ns.bench import evaluation, metrics, scenes
+from nerfuser_ns.bench.evaluation import EvaluationError, SceneRuns
+from nerfuser_ns.bench.training import train
+from nerfuser_ns.cameras import camera_rays
+from nerfuser_ns.spec import NerfEntry, write_registration
 
 pytestmark = pytest.mark.slow
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -189,7 +191,7 @@ def test_test_surface_points_are_where_the_test_rays_hit(tiny):
     assert points.shape == (layout.test.num_views, k.height, k.width, 3)
     for v, c2w in enumerate(layout.test.c2w_world):
         hit = scenes.render_camera(layout.scene, c2w, k, supersample=1)
-        origins, directions = scenes.camera_rays(c2w, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        origins, directions = camera_rays(c2w, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
         expected = (origins + directions * hit.depth[..., None, None])[:, :, 0].numpy()
         world = points[v] @ to_world[:3, :3].T + to_world[:3, 3]  # back from the common frame
         mask = hit.mask.numpy()

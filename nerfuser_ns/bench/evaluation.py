@@ -23,7 +23,8 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.base_model import Model
 from torch import Tensor
 
-from nerfuser_ns import metrics, runs, sim3
+from nerfuser_ns import runs, sim3
+from nerfuser_ns.bench import metrics
 
 BLEND_METHODS = ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
 """Every blend method, in the paper's table order."""
@@ -149,7 +150,7 @@ class SceneRuns:
 
 def registered_transforms(registration_file: Path | str, scene: SceneRuns) -> list[Float[np.ndarray, "4 4"]]:
     """Estimated NeRF -> common transforms from a registration file, in the scene's capture order."""
-    from nerfuser_ns.data import read_registration
+    from nerfuser_ns.spec import read_registration
 
     by_name = {e.name: e.nerf_to_common for e in read_registration(registration_file, check_runs=False)}
     missing = [c for c in scene.captures if c not in by_name]
@@ -386,7 +387,7 @@ def gamma_sweep(
                 rays = flat[start : start + chunk]
                 per_nerf = model.nerf_samples(rays)
                 for g in gammas:
-                    model.gamma = float(g)
+                    model.set_blend(gamma=float(g))
                     out = model.blend_samples(rays, per_nerf)
                     for k in keys:
                         parts[g][k].append(out[k])
