@@ -28,6 +28,7 @@ from nerfuser_ns.blending import BlendSettings
 from nerfuser_ns.model import NerfuserModelConfig
 from nerfuser_ns.registration import RegistrationConfig
 from nerfuser_ns.runs import applied_transform, stored_to_nerf
+from nerfuser_ns.sim3 import transform_poses
 from nerfuser_ns.spec import METADATA_KEY, FusionSpec, FusionSpecError, one_line, read_fusion_spec, spec_error
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -42,8 +43,6 @@ def fused_scene_box(spec: FusionSpec) -> SceneBox:
 
 
 def _transform_cameras(cameras: Cameras, T: np.ndarray) -> Cameras:
-    from nerfuser_ns.sim3 import transform_poses
-
     c2w = cameras.camera_to_worlds.detach().cpu().numpy().astype(np.float64)
     out = transform_poses(T, c2w)[..., :3, :4]
     cameras.camera_to_worlds = torch.tensor(out, dtype=torch.float32)

@@ -34,11 +34,14 @@ import numpy as np
 import torch
 from jaxtyping import Bool, Float, Int
 from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.models.base_model import Model, ModelConfig
-from nerfstudio.utils import colormaps
+from nerfstudio.utils import colormaps, colors
 from torch import Tensor, nn
 from torch.nn import Parameter
+from torchmetrics.functional import structural_similarity_index_measure
+from torchmetrics.image import PeakSignalNoiseRatio
 
 from nerfuser_ns import blending, runtime
 from nerfuser_ns.blending import BLEND_METHODS, SHARE_PALETTE, BlendMethod, BlendSettings
@@ -105,8 +108,6 @@ def _background(background_color: Any, rgbs: Tensor) -> Tensor:
     if background_color == "random" or background_color is None:
         return torch.zeros_like(rgbs[..., -1, :])  # eval renders "random" as if on black
     if isinstance(background_color, str):
-        from nerfstudio.utils import colors
-
         background_color = colors.COLORS_DICT[background_color]
     return torch.as_tensor(background_color, dtype=rgbs.dtype, device=rgbs.device).expand_as(rgbs[..., -1, :])
 
@@ -309,8 +310,6 @@ class NerfuserModel(Model):
         self.blend_settings = BlendSettings.from_config(self.config).checked(self.num_nerfs)
         self._add_viewer_controls()
 
-        from torchmetrics.functional import structural_similarity_index_measure
-        from torchmetrics.image import PeakSignalNoiseRatio
         from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity  # lazy/offline after runtime.install
 
         self.psnr = PeakSignalNoiseRatio(data_range=1.0)
@@ -581,8 +580,6 @@ def fuse_models(
 
     ``overrides`` set config fields (e.g. ``blend_method="nearest"``, ``gamma=2.0``).
     """
-    from nerfstudio.data.scene_box import SceneBox
-
     config = config or NerfuserModelConfig()
     for key, value in overrides.items():
         if not hasattr(config, key):

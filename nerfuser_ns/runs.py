@@ -21,6 +21,7 @@ import functools
 import hashlib
 import json
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path, PurePath
 from typing import Literal
 
@@ -31,6 +32,7 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.base_model import Model
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -96,8 +98,6 @@ class UnsafeConfigError(RunLoadError):
 
 def _trusted_packages() -> frozenset[str]:
     """Top-level packages whose classes a run config may name: nerfstudio, ours, and installed nerfstudio plugins."""
-    from importlib.metadata import entry_points
-
     names = {"nerfstudio", "nerfuser_ns"}
     for group in ("nerfstudio.method_configs", "nerfstudio.dataparser_configs"):
         names.update(ep.value.split(":")[0].split(".")[0] for ep in entry_points(group=group))
@@ -419,8 +419,6 @@ def _replay_step_state(model: Model, step: int) -> None:
     nerfstudio's own loaders leave it at its initial value, which changes renders of runs shorter than the anneal
     schedule. Callbacks that need an optimizer or trainer are skipped: they do not hold render state.
     """
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
-
     attrs = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=None)
     try:
         callbacks = model.get_training_callbacks(attrs)

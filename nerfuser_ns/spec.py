@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 from jaxtyping import Float
+from rich.console import Console
 
 from nerfuser_ns import registration
 from nerfuser_ns.registration import RegistrationConfig
@@ -59,6 +60,7 @@ METADATA_KEY = "nerfuser"
 """Key of the :class:`FusionSpec` in the train dataset's metadata (how the pipeline hands it to the model)."""
 
 _SIM3_TOL = 1e-4
+CONSOLE = Console(width=120)
 
 
 class FusionSpecError(ValueError):
@@ -288,10 +290,21 @@ def run_registration(
 ) -> list[NerfEntry]:
     """Registers the runs (NeRFuser Sec. 3.2, ``nerfuser_ns.registration`` with ``config``, default settings when
     None), writes the registration file at ``output`` (its renders and SfM files in ``<output stem>_work/``) and
-    reads it back. ``ns-train nerfuser`` passes ``--pipeline.datamanager.registration.*`` here.
+    reads it back. ``ns-train nerfuser`` passes ``--pipeline.datamanager.registration.*`` here. Says what it runs,
+    with which settings, before it starts: it renders every run (minutes).
     """
+    config = config or RegistrationConfig()
+    device = default_device()
+    sc = config.sampling
+    camera = "the reference run's camera" if sc.width is None else f"{sc.width}x{sc.height} at {sc.fov_deg} deg"
+    CONSOLE.print(
+        f"[bold]nerfuser:[/] no registration file at {output}: registering {len(config_paths)} runs now "
+        f"(pose source {sc.source}, renders {camera}, {sc.size} px, estimator {config.estimator}, "
+        f"refine {config.refine}, device {device}; change with --pipeline.datamanager.registration.*, or run "
+        "ns-nerfuser-register yourself)"
+    )
     try:
-        registration.register_runs(config_paths, output, config=config, names=names, device=default_device())
+        registration.register_runs(config_paths, output, config=config, names=names, device=device)
     except (registration.RegistrationError, RunLoadError) as e:
         raise FusionSpecError(
             one_line(f"{output}: automatic registration failed: {e} (run ns-nerfuser-register with other settings)")

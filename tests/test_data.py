@@ -416,3 +416,20 @@ def test_a_failed_automatic_registration_leaves_no_run(tmp_path, two_runs, monke
     with pytest.raises(SystemExit, match="^nerfuser: registration.json: automatic registration failed"):
         config.save_config()
     assert not (tmp_path / "out").exists()
+
+
+def test_the_automatic_registration_says_what_it_runs_before_it_starts(tmp_path, two_runs, monkeypatch, capsys):
+    a, b = two_runs
+    calls = []
+
+    def register_runs(config_paths, output, config=None, names=None, device="cpu"):
+        calls.append(capsys.readouterr().out)  # what was printed before the work started
+        entries = [NerfEntry(n, Path(c), np.eye(4)) for n, c in zip(names, config_paths, strict=True)]
+        fspec.write_registration(output, entries)
+
+    monkeypatch.setattr(fspec.registration, "register_runs", register_runs)
+    spec = read_fusion_spec(fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b]))
+    assert len(calls) == 1 and len(spec.nerfs) == 2
+    said = " ".join(calls[0].split())
+    assert "no registration file at" in said and "registering 2 runs now" in said
+    assert "pose source auto" in said and "estimator nerfuser" in said and "device" in said

@@ -47,18 +47,10 @@ def render(model, c2w: np.ndarray, outputs=OUTPUTS) -> dict[str, torch.Tensor]:
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    layout = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
-    out = tmp_path_factory.mktemp("scene") / "scene"
-    scenes.write_scene(layout, out, supersample=1)
-    return out
-
-
-@pytest.fixture(scope="module")
-def trained(scene, tmp_path_factory):
+def trained(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("outputs")
     result = train(
-        data=scene / "capture_a", output_dir=out, experiment_name="tiny", max_num_iterations=60, seed=0, tiny=True
+        data=tiny_scene / "capture_a", output_dir=out, experiment_name="tiny", max_num_iterations=60, seed=0, tiny=True
     )
     return runs.load_run(result.config_path)
 
@@ -304,12 +296,12 @@ def _run(cmd: list[str], cwd: Path, env: dict | None = None) -> subprocess.Compl
 
 
 @pytest.fixture(scope="module")
-def fused_run(trained, scene, tmp_path_factory) -> Path:
+def fused_run(trained, tiny_scene, tmp_path_factory) -> Path:
     """Two runs (A, and a copy B of it registered under T_FAR) fused by ns-train, with the scene's test images."""
     root = tmp_path_factory.mktemp("fusion")
     b_dir = root / "runs" / "b" / "nerfacto-cpu" / "run"
     shutil.copytree(trained.config_path.parent, b_dir)
-    gt = json.loads((scene / "ground_truth.json").read_text())
+    gt = json.loads((tiny_scene / "ground_truth.json").read_text())
     capture_to_world = np.array(gt["captures"][0]["capture_to_world"])
     world_to_common = trained.data_to_nerf @ np.linalg.inv(capture_to_world)  # the test capture is world-posed
     write_registration(
@@ -320,7 +312,7 @@ def fused_run(trained, scene, tmp_path_factory) -> Path:
         root / "fusion.json",
         [trained.config_path, b_dir / "config.yml"],
         registration="registration.json",
-        test_data=scene / "test",
+        test_data=tiny_scene / "test",
         test_to_common=world_to_common,
     )
     _run(

@@ -12,16 +12,7 @@ import torch
 import yaml
 
 from nerfuser_ns import runs, runtime
-from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.training import train
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory) -> Path:
-    layout = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
-    out = tmp_path_factory.mktemp("scene") / "scene"
-    scenes.write_scene(layout, out, supersample=1)
-    return out
 
 
 @pytest.fixture(scope="module")

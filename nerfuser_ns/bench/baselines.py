@@ -42,7 +42,7 @@ from jaxtyping import Float
 from nerfstudio.configs.base_config import InstantiateConfig
 
 from nerfuser_ns import sim3
-from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.cameras import Intrinsics, camera_rays
 
 if TYPE_CHECKING:  # open3d is imported lazily: it is heavy and only these baselines need it
     import open3d as o3d
@@ -230,8 +230,6 @@ def pixel_rays(
     c2w: Float[np.ndarray, "n r 4"], intrinsics: Intrinsics
 ) -> tuple[Float[np.ndarray, "n h w 3"], Float[np.ndarray, "n h w 3"]]:
     """Origins and unit directions of every pixel-centre ray (nerfstudio's convention, :func:`cameras.camera_rays`)."""
-    from nerfuser_ns.cameras import camera_rays
-
     c2w = sim3.to_homogeneous(np.asarray(c2w, dtype=np.float64))
     if c2w.ndim == 2:
         c2w = c2w[None]

@@ -8,6 +8,7 @@ rendering pass; :func:`measure_render_cost` times the fused model against its su
 
 from __future__ import annotations
 
+import ctypes
 import json
 import statistics
 import threading
@@ -17,14 +18,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import psutil
 import torch
 from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.models.base_model import Model
+from PIL import Image
+from rich.progress import track
 from torch import Tensor
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import metrics
+from nerfuser_ns.model import fuse_models, map_rays
+from nerfuser_ns.spec import read_registration
 
 BLEND_METHODS = ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
 """Every blend method, in the paper's table order."""
@@ -117,8 +123,6 @@ class SceneRuns:
 
     def test_views(self, reference: int = 0, max_views: int | None = None) -> tuple[Cameras, Float[Tensor, "n h w 3"]]:
         """The world-frame test capture, posed in the common frame, and its ground-truth images."""
-        from PIL import Image
-
         test_dir, meta, frames, c2w_world, world_to_common = self._test_capture(reference, max_views)
         c2w = sim3.transform_poses(world_to_common, c2w_world)
         cams = runs.make_cameras(c2w[:, :3], meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"])
@@ -128,8 +132,6 @@ class SceneRuns:
     def test_surface_points(self, reference: int = 0, max_views: int | None = None) -> Float[Tensor, "n h w 3"]:
         """The ground-truth surface point seen by every test pixel (its pixel-centre ray at the depth file's z-depth),
         in the common frame; NaN where the ray hits nothing or the depth saturates."""
-        from PIL import Image
-
         test_dir, meta, frames, c2w_world, world_to_common = self._test_capture(reference, max_views)
         if any("depth_file_path" not in f for f in frames):
             raise EvaluationError(f"{test_dir / 'transforms.json'}: test frames without depth_file_path; "
@@ -150,8 +152,6 @@ class SceneRuns:
 
 def registered_transforms(registration_file: Path | str, scene: SceneRuns) -> list[Float[np.ndarray, "4 4"]]:
     """Estimated NeRF -> common transforms from a registration file, in the scene's capture order."""
-    from nerfuser_ns.spec import read_registration
-
     by_name = {e.name: e.nerf_to_common for e in read_registration(registration_file, check_runs=False)}
     missing = [c for c in scene.captures if c not in by_name]
     if missing:
@@ -161,8 +161,6 @@ def registered_transforms(registration_file: Path | str, scene: SceneRuns) -> li
 
 def fused(models: Sequence[tuple[str, Model]], transforms: Sequence[np.ndarray], **overrides):  # noqa: ANN201 - NerfuserModel (imported lazily: model.py pulls in nerfstudio's heavy modules)
     """A fused model of loaded sub-models under the given NeRF -> common transforms (``overrides``: config fields)."""
-    from nerfuser_ns.model import fuse_models
-
     if len(models) != len(transforms):
         raise EvaluationError(f"{len(models)} models but {len(transforms)} transforms")
     return fuse_models([(n, m, T) for (n, m), T in zip(models, transforms, strict=True)], **overrides)
@@ -194,8 +192,6 @@ def _return_freed_memory_to_os() -> None:
     """glibc keeps freed blocks (its mmap threshold grows with use), hiding later allocations from the resident size;
     a fixed 64 KiB threshold makes every large tensor its own mapping, returned on free, and ``malloc_trim`` hands
     back the free pages inside the heap (what earlier work left there), so RSS follows live memory."""
-    import ctypes
-
     try:
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(-3, 1 << 16)  # M_MMAP_THRESHOLD
@@ -209,8 +205,6 @@ class _PeakRSS:
     """Samples the process's resident memory in a thread; ``peak - baseline`` is what the block added at most."""
 
     def __init__(self, interval_s: float = 0.002):
-        import psutil
-
         _return_freed_memory_to_os()
 
         self._proc = psutil.Process()
@@ -290,8 +284,6 @@ def measure_render_cost(
     frame, and through each sub-model on just the rays the fused model queries it on. Each repeat runs every pass
     once, in a shuffled order (seeded); the ratios are medians of the per-repeat ratios. The first (warm-up,
     compilation) pass is not counted. Memory is measured in one more pass per full-chunk path, after the timing."""
-    from nerfuser_ns.model import map_rays
-
     # The allocator setting the memory sampler needs, from the start: every pass, timed or sampled, and every call
     # in a process then runs under the same one (set lazily, the first call's memory hid in glibc's cache).
     _return_freed_memory_to_os()
@@ -371,8 +363,6 @@ def gamma_sweep(
 ) -> dict[float, dict[str, dict[str, float]]]:
     """Metrics of every method for every gamma; the sub-models are queried once per ray chunk and the samples are
     re-blended per gamma (``NerfuserModel.blend_samples``), so a sweep costs little more than one render."""
-    from rich.progress import track
-
     model = fused(models, transforms, tau=tau, render_all_methods=True, share_outputs=False)
     keys = [f"rgb_{m.replace('-', '_')}" for m in methods]
     images: dict[float, dict[str, list[Tensor]]] = {g: {k: [] for k in keys} for g in gammas}

@@ -29,7 +29,8 @@ from nerfuser_ns.registration import (
     register,
     write_registration,
 )
-from nerfuser_ns.runs import check_device, default_device
+from nerfuser_ns.renderers import NerfstudioRenderer
+from nerfuser_ns.runs import RunLoadError, check_device, default_device
 
 CONSOLE = Console(width=120)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -54,8 +55,6 @@ class RegisterCommand(RegistrationConfig):
     """Rays per forward pass when rendering (default: each run's own)."""
     def main(self, renderers: list | None = None) -> dict:
         """Register, write the file, print the summary. ``renderers`` replaces the runs of ``configs`` (tests)."""
-        from nerfuser_ns.renderers import NerfstudioRenderer
-
         if renderers is None:
             check_device(self.device)
             if len(self.configs) < 2:
@@ -162,8 +161,6 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
 
 def run(cmd: RegisterCommand, renderers: list | None = None) -> int:
     """Run the command; known bad-input errors become one red line and exit status 1."""
-    from nerfuser_ns.runs import RunLoadError
-
     try:
         cmd.main(renderers)
     except (RegistrationError, RunLoadError) as e:

@@ -318,14 +318,12 @@ def test_bad_depth_arrays():
 # A real (tiny) nerfacto run
 
 
-def test_nerfacto_depth_renders_become_a_cloud_in_the_nerf_frame(tmp_path):
+def test_nerfacto_depth_renders_become_a_cloud_in_the_nerf_frame(tiny_scene, tmp_path):
     """NerfstudioRenderer's depth is nerfacto's ``depth`` output (ray distance); the cloud is its back-projection."""
     from nerfuser_ns.bench.training import train
     from nerfuser_ns.renderers import NerfstudioRenderer
 
-    tiny = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
-    scenes.write_scene(tiny, tmp_path / "scene", supersample=1)
-    result = train(data=tmp_path / "scene" / "capture_a", output_dir=tmp_path / "outputs", experiment_name="tiny",
+    result = train(data=tiny_scene / "capture_a", output_dir=tmp_path / "outputs", experiment_name="tiny",
                    max_num_iterations=6, seed=0, tiny=True)  # fmt: skip
     renderer = NerfstudioRenderer(result.config_path, name="tiny")
     # Hemisphere poses: training_poses() would load the run with its dataset, a path that (unlike the model-only one)

@@ -25,15 +25,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> SceneRuns:
-    """A tiny object-centric scene and one tiny nerfacto-cpu run per capture, laid out as build_demo.py does."""
+def tiny(tiny_scene, tmp_path_factory) -> SceneRuns:
+    """The tiny object-centric scene and one tiny nerfacto-cpu run per capture, laid out as build_demo.py does."""
     root = tmp_path_factory.mktemp("eval")
-    layout = scenes.make_layout("object-centric", seed=3, num_views=12, num_test_views=2, width=40, height=30)
-    scenes.write_scene(layout, root / "scene", supersample=1)
     for capture in ("capture_a", "capture_b"):
-        train(data=root / "scene" / capture, output_dir=root / "runs", experiment_name=capture,
+        train(data=tiny_scene / capture, output_dir=root / "runs", experiment_name=capture,
               max_num_iterations=30, seed=0, timestamp="demo", tiny=True)  # fmt: skip
-    return SceneRuns.from_dirs("tiny", root / "scene", root / "runs")
+    return SceneRuns.from_dirs("tiny", tiny_scene, root / "runs")
 
 
 @pytest.fixture(scope="module")
