@@ -446,20 +446,25 @@ class NerfuserModel(Model):
         def set_reference(element) -> None:  # noqa: ANN001
             self.reference_nerf = reference_options.index(element.value)
 
-        self.viewer_blend_method = ViewerDropdown(
-            "NeRFuser blend method", self.blend_method, list(BLEND_METHODS), cb_hook=set_method
-        )
-        self.viewer_gamma = ViewerNumber("NeRFuser gamma", float(self.gamma), cb_hook=set_gamma)
-        self.viewer_tau = ViewerNumber("NeRFuser tau (0: off)", float(self.tau or 0.0), cb_hook=set_tau)
-        self.viewer_reference = ViewerDropdown(
-            "NeRFuser reference NeRF", reference_options[self.reference_nerf % self.num_nerfs], reference_options,
-            cb_hook=set_reference,
-        )
+        controls = {
+            "blend_method": ViewerDropdown(
+                "NeRFuser blend method", self.blend_method, list(BLEND_METHODS), cb_hook=set_method
+            ),
+            "reference_nerf": ViewerDropdown(
+                "NeRFuser reference NeRF",
+                reference_options[self.reference_nerf % self.num_nerfs],
+                reference_options,
+                cb_hook=set_reference,
+            ),
+            "gamma": ViewerNumber("NeRFuser gamma", float(self.gamma), cb_hook=set_gamma),
+            "tau": ViewerNumber("NeRFuser tau (0: off)", float(self.tau or 0.0), cb_hook=set_tau),
+        }
 
         from nerfuser_ns.viewer import NerfuserSceneControl
 
-        # Scene groups (NeRF frames, registration and test cameras), CPU defaults: set up by the viewer, if any.
-        self.viewer_scene = NerfuserSceneControl(self)
+        # The controls at the top of the viewer's panel, scene groups (NeRF frames, registration and test cameras), CPU
+        # defaults: set up by the viewer, if any. The control holds the elements (see NerfuserSceneControl).
+        self.viewer_scene = NerfuserSceneControl(self, controls)
 
     # --- nerfstudio Model API ---------------------------------------------------------------------------------------
 
