@@ -44,6 +44,11 @@ BlendMethod = Literal["nerf", "nearest", "idw-2d", "idw-3d", "idw-sample"]
 
 BLEND_METHODS: tuple[str, ...] = get_args(BlendMethod)
 
+PAPER_OBJECT_CENTRIC: tuple[float, float] = (5.0, 1.8)
+"""(gamma, tau) the paper uses on its object-centric indoor scenes (the default of every tool)."""
+PAPER_MISSION_BAY: tuple[float, float] = (10.0, 1.2)
+"""(gamma, tau) the paper uses on Mission Bay (street scenes)."""
+
 
 def _pad_right(x: Tensor, ndim: int) -> Tensor:
     """Appends singleton dims so that ``x`` broadcasts against a tensor with ``ndim`` dims sharing its leading dims."""
@@ -594,8 +599,8 @@ class BlendSettings:
     """
 
     method: str = "idw-sample"
-    gamma: float = 1.0
-    tau: float | None = None
+    gamma: float = PAPER_OBJECT_CENTRIC[0]
+    tau: float | None = PAPER_OBJECT_CENTRIC[1]
     """None (or 0 where given): the distance test is off."""
     reference_nerf: int = 0
 

@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
-from nerfstudio.data.datamanagers.base_datamanager import DataManager, VanillaDataManagerConfig
+from nerfstudio.data.datamanagers.base_datamanager import DataManager, VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
@@ -27,7 +27,7 @@ from torch.nn import Parameter
 from nerfuser_ns.blending import BlendSettings
 from nerfuser_ns.model import NerfuserModelConfig
 from nerfuser_ns.registration import RegistrationConfig
-from nerfuser_ns.runs import applied_transform, stored_to_nerf
+from nerfuser_ns.runs import RunLoadError, applied_transform, stored_to_nerf, training_cameras
 from nerfuser_ns.sim3 import transform_poses
 from nerfuser_ns.spec import METADATA_KEY, FusionSpec, FusionSpecError, one_line, read_fusion_spec, spec_error
 
@@ -104,6 +104,27 @@ class PlaceholderImageDataset(InputDataset):
         return {"image_idx": image_idx, "image": image}
 
 
+def render_cameras_dataparser_outputs(spec: FusionSpec, metadata: dict) -> DataparserOutputs | None:
+    """Cameras to render a fused run from when its spec has no test images (``ns-render spiral``/``interpolate``/
+    ``dataset``, the viewer's camera frustums): the training cameras of the first NeRF whose dataset is still
+    readable (the reference NeRF's, normally), mapped into the common frame, without images (named
+    ``<nerf name>/train_00000`` ...). None when no NeRF's dataset is readable."""
+    for entry in spec.nerfs:
+        try:
+            cameras = training_cameras(entry.config_path)
+        except RunLoadError:
+            continue
+        return DataparserOutputs(
+            image_filenames=[Path(f"<{entry.name}>") / f"train_{i:05d}" for i in range(len(cameras))],
+            cameras=_transform_cameras(cameras, entry.nerf_to_common),
+            scene_box=fused_scene_box(spec),
+            metadata=metadata,
+            dataparser_transform=torch.eye(4)[:3],
+            dataparser_scale=1.0,
+        )
+    return None
+
+
 def placeholder_dataparser_outputs(spec: FusionSpec, metadata: dict) -> DataparserOutputs:
     """One small camera per NeRF, at its origin looking along its -z axis (stand-ins for the viewer)."""
     n = len(spec.nerfs)
@@ -154,12 +175,17 @@ class NerfuserDataManagerConfig(VanillaDataManagerConfig):
     hemisphere views of the NeRFs do not overlap)."""
 
 
-class NerfuserDataManager(DataManager):
+class NerfuserDataManager(VanillaDataManager):
     """Datamanager of the ``nerfuser`` method.
 
     Nothing is trained: the train dataset only carries the :class:`FusionSpec` to the model (its ``metadata``) and
-    cameras for the viewer (the test images, or placeholder cameras at the NeRF origins). The eval dataset is the
-    test images, when the spec has them, for ``ns-eval``.
+    the cameras to render from (viewer, ``ns-render spiral/interpolate/dataset``). Those are the test images when the
+    spec has them (``ns-eval`` scores them), else the training cameras of the first NeRF whose dataset is readable
+    (:func:`render_cameras_dataparser_outputs`, without images, so ``ns-eval`` refuses them), both as train and eval
+    dataset; without either, placeholder cameras at the NeRF origins (for the viewer only) and no eval dataset.
+
+    A :class:`VanillaDataManager` only because ``ns-render spiral`` asserts one; none of its set-up runs (its
+    ``__init__`` parses a dataset and builds ray samplers).
     """
 
     config: NerfuserDataManagerConfig
@@ -186,11 +212,15 @@ class NerfuserDataManager(DataManager):
             self.train_dataparser_outputs = load_test_dataparser_outputs(self.spec, metadata, config.dataparser)
             self.train_dataset = InputDataset(self.train_dataparser_outputs)
             self.eval_dataset = InputDataset(self.train_dataparser_outputs)
+        elif (outputs := render_cameras_dataparser_outputs(self.spec, metadata)) is not None:
+            self.train_dataparser_outputs = outputs
+            self.train_dataset = PlaceholderImageDataset(outputs)
+            self.eval_dataset = self.train_dataset
         else:
             self.train_dataparser_outputs = placeholder_dataparser_outputs(self.spec, metadata)
             self.train_dataset = PlaceholderImageDataset(self.train_dataparser_outputs)
             self.eval_dataset = None
-        super().__init__()
+        DataManager.__init__(self)  # not VanillaDataManager's (see the class docstring)
 
     def setup_train(self) -> None:
         """Nothing to set up: the method does not train."""
@@ -203,10 +233,27 @@ class NerfuserDataManager(DataManager):
         )
 
     @functools.cached_property
+    def eval_dataloader(self) -> RandIndicesEvalDataloader:
+        """The eval cameras (``ns-render spiral`` starts at the first). Only reached before ``setup_eval`` set the
+        attribute (``inference`` mode), or without cameras: then one line naming what to use instead. A cached
+        property, skipped by the viewer (see below)."""
+        if self.eval_dataset is not None:
+            self.setup_eval()
+            return self.__dict__["eval_dataloader"]
+        raise SystemExit(
+            one_line(
+                f"nerfuser: {self.spec.spec_path or self.config.data}: no cameras to render a spiral or an "
+                "interpolation from (the fusion spec has no test images and no dataset of the fused runs is readable); "
+                "render a camera path made in the viewer's Render tab (ns-render camera-path), or add 'test_data' to "
+                "the spec and render its views (ns-render dataset --split test)"
+            )
+        )
+
+    @functools.cached_property
     def fixed_indices_eval_dataloader(self) -> FixedIndicesEvalDataloader:
         """All test images in order (``ns-eval``). A cached property: nerfstudio's viewer reads every plain attribute
         and property of the pipeline but skips cached ones, so a spec without test images still opens in it."""
-        if self.eval_dataset is None:
+        if self.spec.test_data is None:
             raise RuntimeError(
                 f"{self.spec.spec_path or self.config.data}: the fusion spec has no test images; add 'test_data' "
                 "(a nerfstudio dataset posed in the common frame) to evaluate"
@@ -225,9 +272,9 @@ class NerfuserDataManager(DataManager):
         return self.next_eval_image(step)
 
     def next_eval_image(self, step: int) -> tuple[Cameras, dict]:
-        if self.eval_dataset is None:
+        if self.spec.test_data is None:
             raise RuntimeError("the fusion spec has no test images")
-        if not hasattr(self, "eval_dataloader"):
+        if "eval_dataloader" not in self.__dict__:  # not hasattr: the class attribute would raise
             self.setup_eval()
         for camera, batch in self.eval_dataloader:
             return camera, batch

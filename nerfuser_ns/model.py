@@ -44,9 +44,10 @@ from torchmetrics.functional import structural_similarity_index_measure
 from torchmetrics.image import PeakSignalNoiseRatio
 
 from nerfuser_ns import blending, runtime
-from nerfuser_ns.blending import BLEND_METHODS, SHARE_PALETTE, BlendMethod, BlendSettings
+from nerfuser_ns.blending import BLEND_METHODS, PAPER_OBJECT_CENTRIC, SHARE_PALETTE, BlendMethod, BlendSettings
 from nerfuser_ns.runs import load_run
 from nerfuser_ns.spec import read_fusion_spec
+from nerfuser_ns.viewer import NerfuserSceneControl
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Sub-model adapters
@@ -246,9 +247,9 @@ class NerfuserModelConfig(ModelConfig):
     rays already carry nears/fars, they are mapped into each NeRF's frame instead."""
     blend_method: BlendMethod = "idw-sample"
     """``nerf`` (one NeRF), ``nearest``, ``idw-2d``, ``idw-3d`` or ``idw-sample`` (NeRFuser)."""
-    gamma: float = 5.0
+    gamma: float = PAPER_OBJECT_CENTRIC[0]
     """IDW blending rate (w ~ d^-gamma); 0: mean, inf: nearest. The paper uses 5 (objects), 10 (street)."""
-    tau: float | None = 1.8
+    tau: float | None = PAPER_OBJECT_CENTRIC[1]
     """Distance test (IDW methods): NeRFs whose origin is more than tau times as far from the camera as the nearest
     one's are left out (two NeRFs: the nearest alone past that ratio). None or 0 disables it (as in the viewer). The
     paper uses 1.8 (objects), 1.2 (street)."""
@@ -354,20 +355,23 @@ class NerfuserModel(Model):
         def set_reference(element) -> None:  # noqa: ANN001
             self.set_blend(reference_nerf=reference_options.index(element.value))
 
-        self.viewer_blend_method = ViewerDropdown(
-            "NeRFuser blend method", self.blend_method, list(BLEND_METHODS), cb_hook=set_method
-        )
-        self.viewer_gamma = ViewerNumber("NeRFuser gamma", float(self.gamma), cb_hook=set_gamma)
-        self.viewer_tau = ViewerNumber("NeRFuser tau (0: off)", float(self.tau or 0.0), cb_hook=set_tau)
-        self.viewer_reference = ViewerDropdown(
-            "NeRFuser reference NeRF", reference_options[self.reference_nerf % self.num_nerfs], reference_options,
-            cb_hook=set_reference,
-        )
+        controls = {
+            "blend_method": ViewerDropdown(
+                "NeRFuser blend method", self.blend_method, list(BLEND_METHODS), cb_hook=set_method
+            ),
+            "reference_nerf": ViewerDropdown(
+                "NeRFuser reference NeRF",
+                reference_options[self.reference_nerf % self.num_nerfs],
+                reference_options,
+                cb_hook=set_reference,
+            ),
+            "gamma": ViewerNumber("NeRFuser gamma", float(self.gamma), cb_hook=set_gamma),
+            "tau": ViewerNumber("NeRFuser tau (0: off)", float(self.tau or 0.0), cb_hook=set_tau),
+        }
 
-        from nerfuser_ns.viewer import NerfuserSceneControl
-
-        # Scene groups (NeRF frames, registration and test cameras), CPU defaults: set up by the viewer, if any.
-        self.viewer_scene = NerfuserSceneControl(self)
+        # The controls at the top of the viewer's panel, scene groups (NeRF frames, registration and test cameras), CPU
+        # defaults: set up by the viewer, if any. The control holds the elements (see NerfuserSceneControl).
+        self.viewer_scene = NerfuserSceneControl(self, controls)
 
     # --- nerfstudio Model API ---------------------------------------------------------------------------------------
 

@@ -3,17 +3,20 @@
 ``ns-viewer --load-config <fused run>/config.yml`` works as for any run: the ``nerfuser`` model carries a
 :class:`NerfuserSceneControl` (a nerfstudio ``ViewerControl``), which the viewer sets up when it starts. It adds
 
-* a "NeRFuser scene" folder to the panel with one toggle per scene group and a legend of the share colours;
-* the scene groups: each NeRF's frame (axes at its origin, one NeRF unit long, i.e. scaled by its registered scale,
-  with a sphere in its share colour), the cameras the registration rendered from (read from the registration file's
-  ``render_folder``, in each NeRF's colour, grey where the view was left out of the SfM) and the test cameras;
-* CPU-friendly render settings (a small maximum resolution, a warmed-up first render) and an offline page.
+* a "NeRFuser" folder at the top of the panel: the blend controls (method, the NeRF shown by ``nerf``, gamma, tau;
+  made by :meth:`nerfuser_ns.model.NerfuserModel._add_viewer_controls`), a "Scene overlays" checkbox (off) with one
+  toggle per scene group under it, and a legend of the share colours ("Output type" ``nerf_share`` shows each NeRF's
+  weight share in its colour);
+* the scene groups, hidden until "Scene overlays" is ticked: each NeRF's frame (axes at its origin, one NeRF unit
+  long, i.e. scaled by its registered scale, with a sphere in its share colour), the cameras the registration
+  rendered from (read from the registration file's ``render_folder``, in each NeRF's colour, grey where the view was
+  left out of the SfM) and the test cameras;
+* nerfstudio's training controls hidden (Pause/Resume Training, Train Speed, Train Util: nothing trains);
+* CPU-friendly render settings (a small maximum resolution, a warmed-up renderer, low-resolution frames sized to the
+  renderer's measured speed rather than nerfstudio's 30 fps guess) and an offline page.
 
-The blend controls (method, the NeRF shown by ``nerf``, gamma, tau) are the model's own viewer elements
-(:meth:`nerfuser_ns.model.NerfuserModel._add_viewer_controls`); "Output type" ``nerf_share`` shows each NeRF's
-weight share in its colour.
-
-:func:`start_viewer` opens the same viewer on a fused run or straight from a fusion spec (``ns-nerfuser-view``).
+:func:`nerfuser_ns.scripts.view.start_viewer` opens the same viewer on a fused run or straight from a fusion spec
+(``ns-nerfuser-view``).
 
 Frames: everything is drawn in the common frame, in viser units (nerfstudio's x10, ``VISER_NERFSTUDIO_SCALE_RATIO``).
 """
@@ -21,11 +24,11 @@ Frames: everything is drawn in the common frame, in viser units (nerfstudio's x1
 from __future__ import annotations
 
 import atexit
+import contextlib
 import hashlib
 import json
 import os
 import shutil
-import socket
 import tempfile
 import threading
 import time
@@ -35,10 +38,21 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import viser.theme
+import viser.transforms as vtf
 from jaxtyping import Float
+from nerfstudio.utils import writer
+from nerfstudio.utils.writer import GLOBAL_BUFFER, EventName
+from nerfstudio.viewer.render_state_machine import RenderAction
 from nerfstudio.viewer.viewer_elements import ViewerControl
+from viser import infra
 
-if TYPE_CHECKING:
+from nerfuser_ns import runs
+from nerfuser_ns.blending import SHARE_PALETTE
+from nerfuser_ns.sim3 import transform_poses
+from nerfuser_ns.spec import FusionSpecError, read_fusion_spec
+
+if TYPE_CHECKING:  # the model imports this module (it carries the scene control): no import back at run time
     from nerfstudio.viewer.viewer import Viewer
 
     from nerfuser_ns.model import NerfuserModel
@@ -48,6 +62,11 @@ VISER_SCALE = 10.0
 """nerfstudio's viewer draws nerfstudio units x10 (``VISER_NERFSTUDIO_SCALE_RATIO``)."""
 CPU_MAX_RES = 256
 """Default "Max res" of the viewer when the model renders on the CPU (nerfstudio's default, 512, takes ~4x longer)."""
+LOW_RES_SECONDS = 1.0
+"""Longest a low-resolution frame of a fused run (the first ones a browser gets, and those while its camera moves) is
+meant to take at the renderer's measured speed; it is then half of "Max res" tall, or less when that would take
+longer. nerfstudio sizes them for 30 fps, from a guess of 100k rays/s until it has timed a frame: a 40 px tall first
+frame, then ~30 px ones on a CPU."""
 
 # Names of the share colours (nerfuser_ns.blending.SHARE_PALETTE, tab10), for the legend.
 _COLOUR_NAMES = ["blue", "orange", "green", "red", "purple", "brown", "pink", "grey", "olive", "cyan"]
@@ -128,8 +147,6 @@ def read_render_folder(folder: Path, nerf_to_common: np.ndarray) -> CameraSet:
     Raises:
         ViewerSetupError: the folder or its poses.json is missing or unreadable.
     """
-    from nerfuser_ns.sim3 import transform_poses
-
     path = Path(folder) / "poses.json"
     try:
         meta = json.loads(path.read_text())
@@ -218,7 +235,6 @@ def fused_scene(model: NerfuserModel, datamanager: Any = None) -> FusedScene:
     scene = FusedScene(nerfs)
     spec = getattr(datamanager, "spec", None)
     if spec is None and getattr(model.config, "fusion_spec", None) is not None:
-        from nerfuser_ns.spec import FusionSpecError, read_fusion_spec
 
         try:
             spec = read_fusion_spec(model.config.fusion_spec, register=False)
@@ -298,7 +314,6 @@ def offline_client_root(build_dir: Path) -> Path:
 
 def _serve_offline_page() -> None:
     """Make every viser server of this process serve :func:`offline_client_root` (idempotent)."""
-    from viser import infra
 
     init = infra.WebsockServer.__init__
     if getattr(init, "_nerfuser_offline", False):
@@ -323,7 +338,6 @@ def _serve_offline_page() -> None:
 
 def _wxyz(c2w: np.ndarray) -> np.ndarray:
     """viser's orientation of an OpenGL camera-to-world (viser cameras look along +z, OpenGL ones along -z)."""
-    import viser.transforms as vtf
 
     R = np.asarray(c2w, dtype=np.float64)[:3, :3]
     u, _, vt = np.linalg.svd(R)  # re-orthonormalise (float32 round trips)
@@ -331,25 +345,43 @@ def _wxyz(c2w: np.ndarray) -> np.ndarray:
 
 
 class NerfuserSceneControl(ViewerControl):
-    """Scene groups, toggles, CPU defaults and an offline page for a fused model in nerfstudio's viewer.
+    """The NeRFuser panel, scene groups, CPU defaults and an offline page for a fused model in nerfstudio's viewer.
 
     The model creates it (``model.viewer_scene``); nerfstudio's viewer finds every ``ViewerControl`` of the pipeline
     and calls :meth:`_setup` once it is running. Nothing happens without a viewer.
+
+    ``controls`` (name: nerfstudio ``ViewerElement``) are installed at the top of the panel by :meth:`_setup`. They
+    are held here, not by the model: nerfstudio installs every element it finds on the model itself, in a "Custom
+    Elements" folder below all of its own controls.
     """
 
-    def __init__(self, model: NerfuserModel, cpu_max_res: int = CPU_MAX_RES, warm_up: bool = True) -> None:
+    def __init__(
+        self,
+        model: NerfuserModel,
+        controls: dict[str, Any] | None = None,
+        cpu_max_res: int = CPU_MAX_RES,
+        warm_up: bool = True,
+    ) -> None:
         super().__init__()
         self._model = model
+        self.controls: dict[str, Any] = dict(controls or {})
+        """The blend controls (``ViewerElement``), by name: blend_method, reference_nerf, gamma, tau."""
         self.cpu_max_res = cpu_max_res
         self.warm_up = warm_up
         self.scene: FusedScene | None = None
         self.groups: dict[str, list[Any]] = {"nerf_frames": [], "registration_cameras": [], "test_cameras": []}
         """Scene handles of each group (what the toggles hide and show)."""
+        self.folder: Any = None
+        """The panel's "NeRFuser" folder handle."""
+        self.overlays: Any = None
+        """The "Scene overlays" checkbox handle: shows the groups whose toggle is on (off at start)."""
         self.toggles: dict[str, Any] = {}
-        """The panel's checkbox handle of each group."""
+        """The panel's checkbox handle of each group (shown while "Scene overlays" is on)."""
         self.axes_lengths: list[float] = []
         """Axes length of each NeRF's frame, in viser units (``VISER_SCALE`` x its registered scale)."""
         self.warm_up_seconds: float | None = None
+        self.rays_per_second: float | None = None
+        """The renderer's speed, timed after the warm-up (sizes the low-resolution frames; see LOW_RES_SECONDS)."""
         # ns-viewer builds the model before the viser server: the page it serves is fixed now.
         _serve_offline_page()
 
@@ -360,13 +392,14 @@ class NerfuserSceneControl(ViewerControl):
         self._offline_theme()
         if model.device.type == "cpu" and self.cpu_max_res:
             viewer.control_panel._max_res.value = min(int(viewer.control_panel.max_res), int(self.cpu_max_res))
+        self._hide_training_controls(viewer)
         self.scene = scene = fused_scene(model, getattr(viewer.pipeline, "datamanager", None))
         for note in scene.notes:
             print(f"nerfuser viewer: {note}")
         with server.atomic():
             self._draw(server, scene)
-        self._add_panel(server, scene)
-        server.on_client_connect(self._initial_view)
+        self._add_panel(viewer, scene)
+        server.on_client_connect(self._on_connect)
         if self.warm_up:
             self._warm_up()
 
@@ -374,8 +407,6 @@ class NerfuserSceneControl(ViewerControl):
 
     def _offline_theme(self) -> None:
         """nerfstudio's theme without its title-bar logo (an image fetched from docs.nerf.studio)."""
-        import viser.theme
-
         buttons = (
             viser.theme.TitlebarButton(text="Getting Started", icon=None, href="https://nerf.studio"),
             viser.theme.TitlebarButton(
@@ -390,7 +421,40 @@ class NerfuserSceneControl(ViewerControl):
             brand_color=(255, 211, 105),
         )
 
-    def _add_panel(self, server: Any, scene: FusedScene) -> None:
+    @staticmethod
+    def _hide_training_controls(viewer: Viewer) -> None:
+        """nerfstudio's training controls: nothing trains in a fused run. (The control panel has no public accessor
+        for its Train Speed and Train Util elements; hiding them is ViewerElement's own set_hidden.)"""
+        for handle in (viewer.pause_train, viewer.resume_train):
+            handle.visible = False
+        for name in ("_train_speed", "_train_util"):
+            element = getattr(viewer.control_panel, name, None)
+            if element is not None:
+                element.set_hidden(True)
+
+    def _rerender(self) -> None:
+        """What nerfstudio does after a change of one of its elements: every browser renders the view again."""
+        viewer = self.viewer
+        for client_id, client in self.viser_server.get_clients().items():
+            machine = viewer.render_statemachines.get(client_id)
+            if machine is not None:
+                machine.action(RenderAction("rerender", viewer.get_camera_state(client)))
+
+    def _install(self, element: Any) -> None:
+        """Install a ViewerElement as nerfstudio installs the model's own: its callback under the viewer's lock, then
+        a new render."""
+        hook, lock = element.cb_hook, self.viewer.train_lock
+
+        def locked_hook(e: Any) -> None:
+            with lock if lock is not None else contextlib.nullcontext():
+                hook(e)
+            self._rerender()
+
+        element.cb_hook = locked_hook
+        element.install(self.viser_server)
+
+    def _add_panel(self, viewer: Viewer, scene: FusedScene) -> None:
+        server = viewer.viser_server
         n_reg = sum(len(n.registration_cameras) for n in scene.nerfs if n.registration_cameras is not None)
         n_test = 0 if scene.test_cameras is None else len(scene.test_cameras)
         labels = {
@@ -407,29 +471,49 @@ class NerfuserSceneControl(ViewerControl):
             f"{i}: **{short_name(n.name)}** ({_COLOUR_NAMES[i % len(_COLOUR_NAMES)]}, scale {n.scale:.3g})"
             for i, n in enumerate(scene.nerfs)
         )
-        with server.gui.add_folder("NeRFuser scene"):
+        # Above everything nerfstudio put in the panel (its buttons, stats and tabs: viser orders by creation).
+        header = [viewer.pause_train, viewer.resume_train, viewer.hide_images, viewer.show_images]
+        self.folder = server.gui.add_folder("NeRFuser", order=min(h.order for h in header) - 1.0)
+        with self.folder:
+            for element in self.controls.values():
+                self._install(element)
+            self.overlays = server.gui.add_checkbox(
+                "Scene overlays", False, hint="Show how the scene was put together (the groups ticked below)"
+            )
+            self.overlays.on_update(lambda _: self._show_groups())
             for key, label in labels.items():
-                toggle = server.gui.add_checkbox(label, True, hint=hints[key], disabled=not self.groups[key])
-                toggle.on_update(lambda event, key=key: self.set_group_visible(key, event.target.value))
+                toggle = server.gui.add_checkbox(
+                    label, True, hint=hints[key], disabled=not self.groups[key], visible=False
+                )
+                toggle.on_update(lambda _: self._show_groups())
                 self.toggles[key] = toggle
             server.gui.add_markdown(
                 "NeRFs (the `nerf_share` output's colours; the `nerf` method shows the reference NeRF):  \n" + legend
             )
 
+    def _show_groups(self) -> None:
+        """Each group shown while "Scene overlays" and its own toggle are on; the toggles shown with the overlays."""
+        on = bool(self.overlays.value)
+        with self.viser_server.atomic():
+            for key, toggle in self.toggles.items():
+                toggle.visible = on
+                for handle in self.groups[key]:
+                    handle.visible = on and bool(toggle.value)
+
     def set_group_visible(self, group: str, visible: bool) -> None:
-        """Show or hide one scene group (``nerf_frames``, ``registration_cameras``, ``test_cameras``)."""
+        """Show or hide one scene group (``nerf_frames``, ``registration_cameras``, ``test_cameras``); showing one
+        turns "Scene overlays" on."""
         if group not in self.groups:
             raise KeyError(f"no scene group {group!r}; choose one of {sorted(self.groups)}")
-        with self.viser_server.atomic():
-            for handle in self.groups[group]:
-                handle.visible = bool(visible)
+        self.toggles[group].value = bool(visible)
+        if visible:
+            self.overlays.value = True
+        self._show_groups()
 
     # --- scene ------------------------------------------------------------------------------------------------------
 
     def _draw(self, server: Any, scene: FusedScene) -> None:
-        from nerfuser_ns.blending import SHARE_PALETTE as _PALETTE
-
-        palette = (_PALETTE.numpy() * 255).round().astype(int)
+        palette = (SHARE_PALETTE.numpy() * 255).round().astype(int)
         for i, nerf in enumerate(scene.nerfs):
             colour = tuple(int(c) for c in palette[i % len(palette)])
             length = VISER_SCALE * nerf.scale  # one NeRF unit: the NeRF's [-1, 1] box reaches the axes' tips
@@ -440,10 +524,11 @@ class NerfuserSceneControl(ViewerControl):
                 position=nerf.origin * VISER_SCALE,
                 axes_length=length,
                 axes_radius=0.02 * length,
+                visible=False,  # every group starts hidden ("Scene overlays" shows them)
             )
             self.axes_lengths.append(length)
-            dot = server.scene.add_icosphere(f"{base}/origin", radius=0.06 * length, color=colour)
-            label = server.scene.add_label(f"{base}/name", text=f"{i}: {short_name(nerf.name)}")
+            dot = server.scene.add_icosphere(f"{base}/origin", radius=0.06 * length, color=colour, visible=False)
+            label = server.scene.add_label(f"{base}/name", text=f"{i}: {short_name(nerf.name)}", visible=False)
             self.groups["nerf_frames"] += [frame, dot, label]
             cams = nerf.registration_cameras
             if cams is not None:
@@ -458,6 +543,7 @@ class NerfuserSceneControl(ViewerControl):
                             color=colour if kept else _DROPPED_COLOUR,
                             wxyz=_wxyz(cams.c2w[k]),
                             position=cams.c2w[k][:3, 3] * VISER_SCALE,
+                            visible=False,
                         )
                     )
         if scene.test_cameras is not None:
@@ -473,6 +559,7 @@ class NerfuserSceneControl(ViewerControl):
                         color=_TEST_COLOUR,
                         wxyz=_wxyz(cams.c2w[k]),
                         position=cams.c2w[k][:3, 3] * VISER_SCALE,
+                        visible=False,
                     )
                 )
 
@@ -500,6 +587,10 @@ class NerfuserSceneControl(ViewerControl):
         back = c2w[:3, 2] / np.linalg.norm(c2w[:3, 2])  # OpenGL cameras look along -z
         return c2w[:3, 3] + 0.15 * unit * back, c2w[:3, 3] - unit * back
 
+    def _on_connect(self, client: Any) -> None:
+        self._initial_view(client)
+        self._size_low_res_frames(client)
+
     def _initial_view(self, client: Any) -> None:
         view = self.start_view()
         if view is None:
@@ -509,183 +600,54 @@ class NerfuserSceneControl(ViewerControl):
             client.camera.position = position * VISER_SCALE
             client.camera.look_at = look_at * VISER_SCALE
 
+    def _size_low_res_frames(self, client: Any) -> None:
+        """On the CPU, a browser's low-resolution frames (its first ones, and those while its camera moves) as large
+        as :data:`LOW_RES_SECONDS` allows at the measured speed, up to half of "Max res".
+
+        nerfstudio's render state machine (one per browser, made just before this runs) sizes them to
+        ``rays/s / target_fps`` rays, with its 30 fps target and, until it has timed a frame of its own, 100k rays/s:
+        a GPU's speed. The warm-up's timing goes into the same record (nerfstudio's writer buffer) and the machine's
+        ``target_fps`` is lowered to fit. On a GPU nerfstudio's defaults stay."""
+
+        machine = self.viewer.render_statemachines.get(client.client_id)
+        if self._model.device.type != "cpu" or machine is None or not self.rays_per_second:
+            return
+        if not writer.is_initialized():
+            return  # nerfstudio keeps no timings then: its 100k rays/s guess stays
+        key = EventName.VIS_RAYS_PER_SEC.value
+        if key not in GLOBAL_BUFFER["events"]:
+            writer.put_time(name=EventName.VIS_RAYS_PER_SEC, duration=self.rays_per_second, step=self.viewer.step)
+        rate = GLOBAL_BUFFER["events"][key]["avg"]
+        half_res_rays = client.camera.aspect * (self.viewer.control_panel.max_res / 2) ** 2
+        machine.target_fps = float(np.clip(rate / half_res_rays, 1.0 / LOW_RES_SECONDS, machine.target_fps))
+
     def _warm_up(self) -> None:
-        """One tiny render, so that one-off costs (the CPU fast path's compile, lazy allocations) are paid before
-        the first browser tab connects: its first, low-resolution frame then comes within a second or two."""
-        from nerfuser_ns import runs
+        """Two small renders before the first browser tab connects: the first pays the one-off costs (the CPU fast
+        path's compile, lazy allocations), so that a browser's first frame comes within a second or two; the second
+        times the renderer (:attr:`rays_per_second`)."""
 
         model = self._model
-        start = time.perf_counter()
-        c2w = np.eye(4)  # any view: this render only pays the one-off costs
+        c2w = np.eye(4)  # any view: rays cost about the same wherever they look
         c2w[:3, 3] = model.nerf_origins[0].detach().cpu().numpy() + [0.0, 0.0, float(model.nerf_scales[0])]
-        cams = runs.make_cameras(c2w[None, :3, :], fx=8.0, fy=8.0, cx=4.0, cy=4.0, width=8, height=8)
+
+        def render(width: int, height: int) -> None:
+            cams = runs.make_cameras(c2w[None, :3, :], fx=width, fy=width, cx=width / 2, cy=height / 2, width=width,
+                                     height=height)  # fmt: skip
+            runs.render_views(model, cams.to(model.device), outputs=("rgb",), progress=False)  # returns CPU tensors
+
         try:
-            runs.render_views(model, cams.to(model.device), outputs=("rgb",), progress=False)
+            start = time.perf_counter()
+            render(8, 8)
+            self.warm_up_seconds = time.perf_counter() - start
+            start = time.perf_counter()
+            render(48, 32)
+            self.rays_per_second = 48 * 32 / max(time.perf_counter() - start, 1e-6)
         except Exception as e:  # noqa: BLE001 - the viewer's own first render will show the error
             print(f"nerfuser viewer: warm-up render failed ({type(e).__name__}: {e})")
-            return
-        self.warm_up_seconds = time.perf_counter() - start
 
 
 def _frame_wxyz(rotation: np.ndarray) -> np.ndarray:
     """viser's orientation of a frame with the given rotation (axes: no camera flip)."""
-    import viser.transforms as vtf
 
     u, _, vt = np.linalg.svd(np.asarray(rotation, dtype=np.float64))
     return vtf.SO3.from_matrix(u @ vt).wxyz
-
-
-# ----------------------------------------------------------------------------------------------------------------------
-# Launching
-
-
-@dataclass
-class RunningViewer:
-    """A viewer started by :func:`start_viewer`; :meth:`stop` closes its port and render threads."""
-
-    viewer: Viewer
-    pipeline: Any
-    url: str
-    """Where a browser opens it (``http://host:port``)."""
-    port: int
-    step: int
-    _tmp_dir: Path | None = None
-
-    @property
-    def model(self) -> NerfuserModel:
-        return self.pipeline.model
-
-    @property
-    def scene_control(self) -> NerfuserSceneControl:
-        return self.pipeline.model.viewer_scene
-
-    def stop(self) -> None:
-        for machine in list(self.viewer.render_statemachines.values()):
-            machine.running = False
-        server = self.viewer.viser_server
-        if getattr(server._websock_server, "_ws_server", None) is not None:  # not stopped yet
-            server.stop()
-        if self._tmp_dir is not None:
-            shutil.rmtree(self._tmp_dir, ignore_errors=True)
-            self._tmp_dir = None
-
-
-def _is_run(path: Path) -> bool:
-    return path.suffix in (".yml", ".yaml") or (path.is_dir() and (path / "config.yml").is_file())
-
-
-def load_fused_pipeline(
-    path: Path | str, device: str | None = None, register_if_missing: bool = True
-) -> tuple[Any, Any, int, Path | None]:
-    """``(config, pipeline, step, run folder)`` of a fused run (``ns-train nerfuser``'s config.yml or its folder) or
-    of a fusion spec (a JSON file, a folder holding fusion.json, or a registration file), in eval mode.
-
-    A spec needs no run folder: the pipeline is the ``nerfuser`` method's, built in memory (run folder None).
-
-    Raises:
-        ViewerSetupError, FusionSpecError, RunLoadError: with a one-line message naming the file.
-    """
-    from nerfuser_ns import runs
-    from nerfuser_ns.model import NerfuserModelConfig
-
-    device = device or runs.default_device()
-    path = Path(path).expanduser()
-    if not path.exists():
-        raise ViewerSetupError(f"{path}: no such file or folder; pass a fused run's config.yml or a fusion spec")
-    if _is_run(path):
-        config_path = runs.resolve_config_path(path)
-        config = runs.read_config(config_path)
-        if not isinstance(config.pipeline.model, NerfuserModelConfig):
-            raise ViewerSetupError(
-                f"{config_path}: a {config.method_name} run, not a fused one; open it with ns-viewer, "
-                "or list it under 'runs' in a fusion spec"
-            )
-        loaded = runs.load_run(config_path, device=device, with_data=True, test_mode="test")
-        return loaded.config, loaded.pipeline, loaded.step, loaded.config_path.parent
-
-    from nerfuser_ns.method_configs.nerfuser import nerfuser_config
-
-    data = path.absolute()
-    config = nerfuser_config()
-    config.pipeline.datamanager.data = data
-    config.pipeline.datamanager.register_if_missing = register_if_missing
-    config.pipeline.model.fusion_spec = data
-    config.machine.device_type = "cuda" if str(device).startswith("cuda") else "cpu"
-    pipeline = config.pipeline.setup(device=device, test_mode="test")
-    pipeline.eval()
-    return config, pipeline, 0, None
-
-
-def check_bind(host: str, port: int | None) -> None:
-    """The viewer can serve on ``host`` and ``port`` (None: a free port is picked later): ViewerSetupError otherwise."""
-    if port is not None and not 1 <= port <= 65535:
-        raise ViewerSetupError(f"--port {port}: not a TCP port (1-65535)")
-    try:
-        infos = socket.getaddrinfo(host, port or 0, type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError) as e:
-        raise ViewerSetupError(f"--host {host!r}: cannot be resolved ({e}); use 127.0.0.1 or 0.0.0.0") from None
-    if port is None:
-        return
-    family, socktype, proto, _, address = infos[0]
-    with socket.socket(family, socktype, proto) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind(address)
-        except OSError as e:
-            raise ViewerSetupError(f"cannot serve on {host}:{port} ({e.strerror}); pick another --port") from None
-
-
-def start_viewer(
-    source: Path | str,
-    host: str = "127.0.0.1",
-    port: int | None = None,
-    device: str | None = None,
-    max_res: int | None = None,
-    register_if_missing: bool = True,
-) -> RunningViewer:
-    """Open nerfstudio's viewer on a fused run or a fusion spec (see :func:`load_fused_pipeline`); returns at once.
-
-    What ``ns-viewer --load-config`` does, without blocking, on ``host`` (loopback by default) and ``port`` (None:
-    7007 or the next free port). ``max_res`` sets the panel's "Max res" (default: :data:`CPU_MAX_RES` on the CPU,
-    nerfstudio's 512 otherwise).
-    """
-    from nerfstudio.configs.base_config import ViewerConfig
-    from nerfstudio.utils import writer
-    from nerfstudio.viewer.viewer import Viewer
-
-    check_bind(host, port)  # viser's server thread dies on a bad bind and the caller would wait forever
-    config, pipeline, step, run_dir = load_fused_pipeline(
-        source, device=device, register_if_missing=register_if_missing
-    )
-    tmp_dir = None
-    if run_dir is None:  # the viewer keeps a log file (and its Render tab a config path) beside the run
-        tmp_dir = run_dir = Path(tempfile.mkdtemp(prefix="nerfuser-view-"))
-    viewer_config = ViewerConfig(
-        websocket_host=host, websocket_port=port, num_rays_per_chunk=config.viewer.num_rays_per_chunk
-    )
-    try:
-        viewer = Viewer(
-            viewer_config,
-            log_filename=run_dir / viewer_config.relative_log_filename,
-            datapath=pipeline.datamanager.get_datapath(),
-            pipeline=pipeline,
-            train_lock=threading.Lock(),
-        )
-    except BaseException:
-        if tmp_dir is not None:
-            shutil.rmtree(tmp_dir, ignore_errors=True)
-        raise
-    if max_res is not None:
-        viewer.control_panel._max_res.value = int(max_res)
-    # As ns-viewer: no logging, but the writer's buffer must exist (the viewer times its renders into it).
-    config.logging.local_writer.enable = False
-    writer.setup_local_writer(config.logging, max_iter=config.max_num_iterations)
-    viewer.init_scene(
-        train_dataset=pipeline.datamanager.train_dataset,
-        train_state="completed",
-        eval_dataset=pipeline.datamanager.eval_dataset,
-    )
-    viewer.update_scene(step=step)
-    actual_port = int(viewer.viser_server.get_port())
-    shown_host = "localhost" if host in ("0.0.0.0", "::") else host
-    return RunningViewer(viewer, pipeline, f"http://{shown_host}:{actual_port}", actual_port, step, tmp_dir)

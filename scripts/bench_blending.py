@@ -143,6 +143,7 @@ def main(cfg: BenchBlendingConfig) -> None:
     from nerfuser_ns import runs, runtime
     from nerfuser_ns.bench import evaluation
     from nerfuser_ns.bench.evaluation import SceneRuns
+    from nerfuser_ns.blending import PAPER_OBJECT_CENTRIC
     from nerfuser_ns.files import write_text_atomic
 
     console = Console()
@@ -168,7 +169,7 @@ def main(cfg: BenchBlendingConfig) -> None:
     }
     for scene in scenes:
         layout = scene.ground_truth["layout"]
-        gamma, tau = evaluation.PAPER_SETTINGS.get(layout, (5.0, 1.8))
+        gamma, tau = evaluation.PAPER_SETTINGS.get(layout, PAPER_OBJECT_CENTRIC)
         gamma = cfg.gamma if cfg.gamma is not None else gamma
         tau = cfg.tau if cfg.tau is not None else tau
         console.rule(f"{scene.name} ({layout}, gamma {gamma}, tau {tau})")

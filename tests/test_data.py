@@ -24,10 +24,11 @@ from nerfuser_ns.spec import FusionSpecError, NerfEntry, read_fusion_spec, read_
 T_B = sim3.make_sim3(np.eye(3)[[1, 0, 2]] * [[1], [-1], [1]], np.array([1.0, 2.0, 0.5]), 0.4)
 
 
-def fake_run(root: Path, name: str) -> Path:
+def fake_run(root: Path, name: str, data: Path | None = None) -> Path:
     """A run folder that parses as a nerfstudio run (config.yml + a checkpoint file); nothing is trained."""
     config = nerfacto_cpu_config(10)
     config.experiment_name, config.timestamp, config.output_dir = name, "run", root
+    config.pipeline.datamanager.data = data
     run_dir = root / name / "nerfacto-cpu" / "run"
     (run_dir / "nerfstudio_models").mkdir(parents=True)
     (run_dir / "config.yml").write_text(yaml.dump(config))
@@ -140,7 +141,7 @@ def test_missing_registration_runs_registration(tmp_path, two_runs, monkeypatch)
     spec = read_fusion_spec(spec_path)
     assert calls == [(list(two_runs), tmp_path / "registration.json", ["nerf0", "nerf1"])]
     assert [n.config_path for n in spec.nerfs] == list(two_runs)
-    assert configs == [None]  # the registration's defaults
+    assert configs == [registration.RegistrationConfig()]  # the registration's defaults
     # settings reach the registration (ns-train nerfuser: --pipeline.datamanager.registration.*)
     (tmp_path / "registration.json").unlink()
     settings = registration.RegistrationConfig(sampling=registration.PoseSamplingConfig(source="training"))
@@ -332,6 +333,40 @@ def test_datamanager_without_test_images(tmp_path, two_runs):
     assert dm.train_dataset[1]["image"].shape == (48, 64, 3)
     with pytest.raises(RuntimeError, match="has no test images; add 'test_data'"):
         dm.fixed_indices_eval_dataloader  # noqa: B018
+    # nothing to start ns-render spiral from (the runs' datasets are gone): one line naming what to use instead
+    with pytest.raises(SystemExit, match=r"fusion.json: no cameras to render a spiral .*ns-render camera-path"):
+        dm.eval_dataloader  # noqa: B018
+
+
+def test_without_test_images_the_reference_training_cameras_are_rendered(tmp_path):
+    """ns-render spiral/interpolate need cameras: the first readable NeRF's training cameras, in the common frame."""
+    from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager
+
+    from nerfuser_ns.runs import training_cameras
+
+    ring = [sim3.make_sim3(scene_yaw(0.5 * i), np.array([2 * np.sin(0.5 * i), 0.3 * i, 2.0]), 1.0) for i in range(5)]
+    a = fake_run(tmp_path / "outputs", "a", data=write_dataset(tmp_path / "capture_a", ring))
+    b = fake_run(tmp_path / "outputs", "b")  # its dataset is gone
+    T_A = sim3.make_sim3(scene_yaw(0.3), np.array([0.5, -0.1, 0.2]), 1.5)
+    # the reference (first) NeRF has no readable dataset: the next one's cameras are used
+    registration_file(tmp_path / "registration.json", [{"config": str(b), "transform": T_B.tolist()},
+                                                       {"config": str(a), "transform": T_A.tolist()}])  # fmt: skip
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [b, a])
+    dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
+    assert isinstance(dm, VanillaDataManager)  # ns-render spiral asserts it
+    own = training_cameras(a)
+    expected = sim3.transform_poses(T_A, own.camera_to_worlds.double().numpy())
+    assert len(dm.train_dataset) == len(own) == 5 and dm.eval_dataset is dm.train_dataset
+    np.testing.assert_allclose(dm.train_dataset.cameras.camera_to_worlds.numpy(), expected, atol=1e-5)
+    torch.testing.assert_close(dm.train_dataset.cameras.fx, own.fx)
+    camera, batch = dm.eval_dataloader.get_camera(image_idx=0)  # where ns-render spiral starts
+    np.testing.assert_allclose(camera.camera_to_worlds[0].numpy(), expected[0], atol=1e-5)
+    assert batch["image"].shape == (6, 8, 3)  # no image: a grey stand-in
+    # they are not test images: ns-eval still refuses
+    with pytest.raises(RuntimeError, match="has no test images; add 'test_data'"):
+        dm.fixed_indices_eval_dataloader  # noqa: B018
+    with pytest.raises(RuntimeError, match="no test images"):
+        dm.next_eval_image(0)
 
 
 def scene_yaw(yaw: float) -> np.ndarray:

@@ -29,13 +29,13 @@ from torch import Tensor
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import metrics
+from nerfuser_ns.blending import BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.model import fuse_models, map_rays
 from nerfuser_ns.spec import read_registration
 
-BLEND_METHODS = ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
 """Every blend method, in the paper's table order."""
 
-PAPER_SETTINGS = {"object-centric": (5.0, 1.8), "street": (10.0, 1.2), "drive": (10.0, 1.2)}
+PAPER_SETTINGS = {"object-centric": PAPER_OBJECT_CENTRIC, "street": PAPER_MISSION_BAY, "drive": PAPER_MISSION_BAY}
 """(gamma, tau) the paper uses per scene layout: its object-centric scenes, and Mission Bay for the streets."""
 
 RUN_SUBDIR = Path("nerfacto-cpu/demo")
@@ -172,7 +172,7 @@ def blend_metrics(
     cameras: Cameras,
     target: Float[Tensor, "n h w 3"],
     gamma: float = 5.0,
-    tau: float | None = 1.8,
+    tau: float | None = PAPER_OBJECT_CENTRIC[1],
     methods: Sequence[str] = BLEND_METHODS,
     reference_nerf: int = 0,
     description: str = "blending",
@@ -277,7 +277,7 @@ def measure_render_cost(
     method: str = "idw-sample",
     seed: int = 0,
     gamma: float = 5.0,
-    tau: float | None = 1.8,
+    tau: float | None = PAPER_OBJECT_CENTRIC[1],
 ) -> RenderCost:
     """Times one chunk of ``num_rays`` random test rays through the fused model (``method``, no extra outputs) and
     through each sub-model's own forward pass (collider, sampler, field, renderers) on the same rays mapped into its
@@ -338,7 +338,6 @@ def geometric_gammas(low: float = 1e-2, high: float = 1e3, num: int = 11) -> lis
 
 
 __all__ = [
-    "BLEND_METHODS",
     "EvaluationError",
     "PAPER_SETTINGS",
     "RenderCost",
@@ -358,7 +357,7 @@ def gamma_sweep(
     cameras: Cameras,
     target: Float[Tensor, "n h w 3"],
     gammas: Sequence[float],
-    tau: float | None = 1.8,
+    tau: float | None = PAPER_OBJECT_CENTRIC[1],
     methods: Sequence[str] = BLEND_METHODS,
 ) -> dict[float, dict[str, dict[str, float]]]:
     """Metrics of every method for every gamma; the sub-models are queried once per ray chunk and the samples are

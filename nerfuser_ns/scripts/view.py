@@ -13,17 +13,30 @@ machines connect. Bad input prints one red line and exits with status 1.
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import socket
 import sys
+import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import tyro
+from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.utils import writer
+from nerfstudio.viewer.viewer import Viewer
 from rich.console import Console
 
+from nerfuser_ns import runs
 from nerfuser_ns.blending import BlendMethod
-from nerfuser_ns.runs import check_device, default_device
+from nerfuser_ns.method_configs.nerfuser import nerfuser_config
+from nerfuser_ns.model import NerfuserModel, NerfuserModelConfig
+from nerfuser_ns.runs import RunLoadError, check_device, default_device
+from nerfuser_ns.spec import FusionSpecError
+from nerfuser_ns.viewer import NerfuserSceneControl, ViewerSetupError
 
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
 
@@ -55,8 +68,6 @@ class ViewCommand:
     """Stop after this many seconds (default: run until Ctrl+C or SIGTERM)."""
 
     def main(self) -> None:
-        from nerfuser_ns.viewer import start_viewer
-
         check_device(self.device)
         # The model reads its render-time settings from the environment when it is built.
         if self.blend_method is not None:
@@ -91,16 +102,159 @@ class ViewCommand:
                 print("nerfuser viewer: stopped", flush=True)
 
 
+# ----------------------------------------------------------------------------------------------------------------------
+# Launching (what ns-nerfuser-view runs; tests start viewers with it too)
+
+
+@dataclass
+class RunningViewer:
+    """A viewer started by :func:`start_viewer`; :meth:`stop` closes its port and render threads."""
+
+    viewer: Viewer
+    pipeline: Any
+    url: str
+    """Where a browser opens it (``http://host:port``)."""
+    port: int
+    step: int
+    _tmp_dir: Path | None = None
+
+    @property
+    def model(self) -> NerfuserModel:
+        return self.pipeline.model
+
+    @property
+    def scene_control(self) -> NerfuserSceneControl:
+        return self.pipeline.model.viewer_scene
+
+    def stop(self) -> None:
+        for machine in list(self.viewer.render_statemachines.values()):
+            machine.running = False
+        server = self.viewer.viser_server
+        if getattr(server._websock_server, "_ws_server", None) is not None:  # not stopped yet
+            server.stop()
+        if self._tmp_dir is not None:
+            shutil.rmtree(self._tmp_dir, ignore_errors=True)
+            self._tmp_dir = None
+
+
+def _is_run(path: Path) -> bool:
+    return path.suffix in (".yml", ".yaml") or (path.is_dir() and (path / "config.yml").is_file())
+
+
+def load_fused_pipeline(
+    path: Path | str, device: str | None = None, register_if_missing: bool = True
+) -> tuple[Any, Any, int, Path | None]:
+    """``(config, pipeline, step, run folder)`` of a fused run (``ns-train nerfuser``'s config.yml or its folder) or
+    of a fusion spec (a JSON file, a folder holding fusion.json, or a registration file), in eval mode.
+
+    A spec needs no run folder: the pipeline is the ``nerfuser`` method's, built in memory (run folder None).
+
+    Raises:
+        ViewerSetupError, FusionSpecError, RunLoadError: with a one-line message naming the file.
+    """
+    device = device or runs.default_device()
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise ViewerSetupError(f"{path}: no such file or folder; pass a fused run's config.yml or a fusion spec")
+    if _is_run(path):
+        config_path = runs.resolve_config_path(path)
+        config = runs.read_config(config_path)
+        if not isinstance(config.pipeline.model, NerfuserModelConfig):
+            raise ViewerSetupError(
+                f"{config_path}: a {config.method_name} run, not a fused one; open it with ns-viewer, "
+                "or list it under 'runs' in a fusion spec"
+            )
+        loaded = runs.load_run(config_path, device=device, with_data=True, test_mode="test")
+        return loaded.config, loaded.pipeline, loaded.step, loaded.config_path.parent
+
+    data = path.absolute()
+    config = nerfuser_config()
+    config.pipeline.datamanager.data = data
+    config.pipeline.datamanager.register_if_missing = register_if_missing
+    config.pipeline.model.fusion_spec = data
+    config.machine.device_type = "cuda" if str(device).startswith("cuda") else "cpu"
+    pipeline = config.pipeline.setup(device=device, test_mode="test")
+    pipeline.eval()
+    return config, pipeline, 0, None
+
+
+def check_bind(host: str, port: int | None) -> None:
+    """The viewer can serve on ``host`` and ``port`` (None: a free port is picked later): ViewerSetupError otherwise."""
+    if port is not None and not 1 <= port <= 65535:
+        raise ViewerSetupError(f"--port {port}: not a TCP port (1-65535)")
+    try:
+        infos = socket.getaddrinfo(host, port or 0, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as e:
+        raise ViewerSetupError(f"--host {host!r}: cannot be resolved ({e}); use 127.0.0.1 or 0.0.0.0") from None
+    if port is None:
+        return
+    family, socktype, proto, _, address = infos[0]
+    with socket.socket(family, socktype, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as e:
+            raise ViewerSetupError(f"cannot serve on {host}:{port} ({e.strerror}); pick another --port") from None
+
+
+def start_viewer(
+    source: Path | str,
+    host: str = "127.0.0.1",
+    port: int | None = None,
+    device: str | None = None,
+    max_res: int | None = None,
+    register_if_missing: bool = True,
+) -> RunningViewer:
+    """Open nerfstudio's viewer on a fused run or a fusion spec (see :func:`load_fused_pipeline`); returns at once.
+
+    What ``ns-viewer --load-config`` does, without blocking, on ``host`` (loopback by default) and ``port`` (None:
+    7007 or the next free port). ``max_res`` sets the panel's "Max res" (default:
+    :data:`nerfuser_ns.viewer.CPU_MAX_RES` on the CPU, nerfstudio's 512 otherwise).
+    """
+    check_bind(host, port)  # viser's server thread dies on a bad bind and the caller would wait forever
+    config, pipeline, step, run_dir = load_fused_pipeline(
+        source, device=device, register_if_missing=register_if_missing
+    )
+    tmp_dir = None
+    if run_dir is None:  # the viewer keeps a log file (and its Render tab a config path) beside the run
+        tmp_dir = run_dir = Path(tempfile.mkdtemp(prefix="nerfuser-view-"))
+    viewer_config = ViewerConfig(
+        websocket_host=host, websocket_port=port, num_rays_per_chunk=config.viewer.num_rays_per_chunk
+    )
+    try:
+        viewer = Viewer(
+            viewer_config,
+            log_filename=run_dir / viewer_config.relative_log_filename,
+            datapath=pipeline.datamanager.get_datapath(),
+            pipeline=pipeline,
+            train_lock=threading.Lock(),
+        )
+    except BaseException:
+        if tmp_dir is not None:
+            shutil.rmtree(tmp_dir, ignore_errors=True)
+        raise
+    if max_res is not None:
+        viewer.control_panel._max_res.value = int(max_res)
+    # As ns-viewer: no logging, but the writer's buffer must exist (the viewer times its renders into it).
+    config.logging.local_writer.enable = False
+    writer.setup_local_writer(config.logging, max_iter=config.max_num_iterations)
+    viewer.init_scene(
+        train_dataset=pipeline.datamanager.train_dataset,
+        train_state="completed",
+        eval_dataset=pipeline.datamanager.eval_dataset,
+    )
+    viewer.update_scene(step=step)
+    actual_port = int(viewer.viser_server.get_port())
+    shown_host = "localhost" if host in ("0.0.0.0", "::") else host
+    return RunningViewer(viewer, pipeline, f"http://{shown_host}:{actual_port}", actual_port, step, tmp_dir)
+
+
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
 def entrypoint() -> None:
     """Entry point of ``ns-nerfuser-view``."""
-    from nerfuser_ns.runs import RunLoadError
-    from nerfuser_ns.spec import FusionSpecError
-    from nerfuser_ns.viewer import ViewerSetupError
-
     command = tyro.cli(ViewCommand)
     try:
         command.main()

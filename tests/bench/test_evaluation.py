@@ -16,6 +16,7 @@ from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import evaluation, metrics, scenes
 from nerfuser_ns.bench.evaluation import EvaluationError, SceneRuns
 from nerfuser_ns.bench.training import train
+from nerfuser_ns.blending import BLEND_METHODS
 from nerfuser_ns.cameras import camera_rays
 from nerfuser_ns.spec import NerfEntry, write_registration
 
@@ -159,8 +160,8 @@ def test_bench_blending_script(tiny, tmp_path):
     (scene,) = report["scenes"]
     assert scene["gamma"] == 5.0 and scene["tau"] == 1.8  # the paper's object-centric setting
     q = scene["quality"]
-    assert set(q) == {"ground-truth", "estimated"} and set(q["estimated"]) == set(evaluation.BLEND_METHODS)
-    for m in evaluation.BLEND_METHODS:  # the "estimated" transforms are the ground truth here
+    assert set(q) == {"ground-truth", "estimated"} and set(q["estimated"]) == set(BLEND_METHODS)
+    for m in BLEND_METHODS:  # the "estimated" transforms are the ground truth here
         assert q["estimated"][m]["psnr"] == pytest.approx(q["ground-truth"][m]["psnr"], abs=1e-4)
     cost = scene["cost"]
     assert cost["num_rays"] == 128
@@ -170,7 +171,7 @@ def test_bench_blending_script(tiny, tmp_path):
     # the sweep re-blends the same samples: at the scene's own gamma it scores what the quality pass scored
     sweep = scene["gamma_sweep"]
     assert set(sweep) == {"5.0", "1000.0"}
-    for m in evaluation.BLEND_METHODS:
+    for m in BLEND_METHODS:
         assert sweep["5.0"][m]["psnr"] == pytest.approx(q["ground-truth"][m]["psnr"], abs=1e-4)
     for m in ("nerf", "nearest"):  # no gamma in them
         assert sweep["1000.0"][m]["psnr"] == pytest.approx(sweep["5.0"][m]["psnr"], abs=1e-6)
