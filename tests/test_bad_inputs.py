@@ -341,7 +341,6 @@ def defect(reason: str) -> pytest.MarkDecorator:
     return pytest.mark.xfail(strict=True, reason=reason)
 
 
-TAG_NAME = "runs.py names the refused tag !!python/apply:... instead of !!python/object/apply:..."
 SCORE_WRAP = "ground_truth.py's error console wraps a long line at 80 columns: two or three lines"
 
 ROWS = [
@@ -349,10 +348,8 @@ ROWS = [
     pytest.param(Row("register", reg_missing_config), id="register-missing-config"),
     pytest.param(Row("register", reg_not_a_nerfstudio_config), id="register-yaml-not-a-nerfstudio-config"),
     pytest.param(Row("register", reg_unreadable_yaml), id="register-unparsable-yaml"),
-    pytest.param(Row("register", reg_os_system_tag), id="register-os-system-tag-refused-not-run",
-                 marks=defect(TAG_NAME)),
-    pytest.param(Row("register", reg_os_system_tag_inside_a_real_config), id="register-os-system-tag-nested",
-                 marks=defect(TAG_NAME)),
+    pytest.param(Row("register", reg_os_system_tag), id="register-os-system-tag-refused-not-run"),
+    pytest.param(Row("register", reg_os_system_tag_inside_a_real_config), id="register-os-system-tag-nested"),
     pytest.param(Row("register", reg_output_is_a_config), id="register-output-is-a-runs-config"),
     pytest.param(Row("register", reg_output_inside_a_run), id="register-output-inside-a-run-folder"),
     pytest.param(Row("register", reg_output_is_a_folder), id="register-output-is-an-existing-folder"),
