@@ -326,6 +326,16 @@ def score_sheared_truth(ws):
     return Call([str(reg), "--gt-transforms", *map(str, gts)], [str(gts[1]), "not a scaled rotation"])
 
 
+def score_bracketed_truth(ws):
+    """A message holding brackets (the bad row, a path with [..]) prints as written, not as console markup."""
+    reg = score_registration_file(ws)
+    bad = np.eye(4)
+    bad[3] = [0.0, 0.0, 1.0, 1.0]
+    gts = [score_gt(ws, np.eye(4), "a"), score_gt(ws, bad, "[red]b")]
+    return Call([str(reg), "--gt-transforms", *map(str, gts)],
+                [str(gts[1]), "last row must be [0, 0, 0, 1], got [0.0, 0.0, 1.0, 1.0]"])  # fmt: skip
+
+
 def score_wrong_count(ws):
     reg = score_registration_file(ws)
     return Call([str(reg), "--gt-transforms", str(score_gt(ws, np.eye(4), "a"))],
@@ -340,8 +350,6 @@ def defect(reason: str) -> pytest.MarkDecorator:
     """A row the tool fails today (strict: the mark must go when the tool is fixed)."""
     return pytest.mark.xfail(strict=True, reason=reason)
 
-
-SCORE_WRAP = "ground_truth.py's error console wraps a long line at 80 columns: two or three lines"
 
 ROWS = [
     pytest.param(Row("register", reg_one_config), id="register-fewer-than-2-configs"),
@@ -382,9 +390,9 @@ ROWS = [
     pytest.param(Row("view", view_port_out_of_range), id="view-port-70000"),
     pytest.param(Row("view", view_unknown_host), id="view-host-unresolvable"),
     pytest.param(Row("view", view_a_non_fused_run), id="view-non-fused-run-config"),
-    pytest.param(Row("score", score_output_is_input), id="score-output-is-the-input-registration",
-                 marks=defect(SCORE_WRAP)),
-    pytest.param(Row("score", score_sheared_truth), id="score-sheared-gt-transform", marks=defect(SCORE_WRAP)),
+    pytest.param(Row("score", score_output_is_input), id="score-output-is-the-input-registration"),
+    pytest.param(Row("score", score_sheared_truth), id="score-sheared-gt-transform"),
+    pytest.param(Row("score", score_bracketed_truth), id="score-gt-transform-bad-last-row-brackets-kept"),
     pytest.param(Row("score", score_wrong_count), id="score-wrong-number-of-gt-transforms"),
 ]
 
