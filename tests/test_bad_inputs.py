@@ -288,6 +288,12 @@ def view_missing_spec(ws):
     return Call([str(missing)], ["ns-nerfuser-view: ", str(missing), "no such file or folder"])
 
 
+def view_missing_spec_with_brackets(ws):
+    """The path is printed as written: ``[old]`` is no console markup to swallow."""
+    missing = ws.root / "fusion" / "fusion[old].json"
+    return Call([str(missing)], ["ns-nerfuser-view: ", str(missing), "no such file or folder"])
+
+
 def view_port_out_of_range(ws):
     return Call([str(train_good_spec(ws)), "--port", "70000"], ["--port 70000", "not a TCP port"])
 
@@ -387,6 +393,7 @@ ROWS = [
     pytest.param(Row("train", train_sheared_registration), id="train-registration-sheared-transform"),
     pytest.param(Row("train", train_stale_registration), id="train-registration-stale-checkpoint"),
     pytest.param(Row("view", view_missing_spec, console_script=True), id="view-missing-spec-console-script"),
+    pytest.param(Row("view", view_missing_spec_with_brackets), id="view-missing-spec-brackets-kept"),
     pytest.param(Row("view", view_port_out_of_range), id="view-port-70000"),
     pytest.param(Row("view", view_unknown_host), id="view-host-unresolvable"),
     pytest.param(Row("view", view_a_non_fused_run), id="view-non-fused-run-config"),
