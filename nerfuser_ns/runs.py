@@ -118,7 +118,7 @@ class _ConfigLoader(yaml.Loader):
             return
         if kind in ("object", "apply") and (top in self.trusted or top == "pathlib"):
             return
-        raise UnsafeConfigError(f"refusing !!python/{kind}:{suffix} at line {node.start_mark.line + 1}")
+        self._refuse(suffix, node)
 
     def _object(self, suffix: str, node: yaml.Node) -> object:
         self._check_name("object", suffix, node)
@@ -139,7 +139,7 @@ class _ConfigLoader(yaml.Loader):
         return self.construct_python_name(suffix, node)
 
     def _refuse(self, suffix: str, node: yaml.Node) -> object:
-        tag = node.tag.replace("tag:yaml.org,2002:", "!!")
+        tag = node.tag.replace("tag:yaml.org,2002:", "!!")  # the tag as written (!!python/object/apply:os.system)
         raise UnsafeConfigError(f"refusing {tag} at line {node.start_mark.line + 1}")
 
 

@@ -311,8 +311,9 @@ def test_a_config_that_would_run_code_is_refused(tmp_path, payload):
     run_dir = tmp_path / "outputs" / "x" / "nerfacto" / "run"
     run_dir.mkdir(parents=True)
     (run_dir / "config.yml").write_text(f"method_name: nerfacto\nexploit: {payload.format(marker=marker)}\n")
-    with pytest.raises(runs.UnsafeConfigError, match=r"config.yml: refusing !!python/"):
+    with pytest.raises(runs.UnsafeConfigError, match=r"config.yml: refusing !!python/") as info:
         runs.read_config(run_dir / "config.yml")
+    assert f"refusing {payload.split()[0]}" in str(info.value)  # the tag as written
     assert not marker.exists()  # nothing ran
 
 

@@ -24,6 +24,7 @@ import tyro
 from jaxtyping import Float
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.files import write_text_atomic
@@ -171,7 +172,11 @@ def entrypoint() -> None:
     try:
         ScoreCommand.main(tyro.cli(ScoreCommand))
     except (RegistrationError, runs.RunLoadError) as e:
-        Console(stderr=True).print(f"[bold red]error:[/] [red]{str(e).splitlines()[0]}[/]", highlight=False)
+        # soft_wrap: one line however long the paths (a wrapped message reads as several errors); the message as
+        # plain text (no markup: paths and matrices hold brackets)
+        message = str(e).splitlines()[0] if str(e) else type(e).__name__
+        Console(stderr=True, soft_wrap=True).print(Text.assemble(("error: ", "bold red"), (message, "red")),
+                                                   highlight=False)  # fmt: skip
         sys.exit(1)
 
 

@@ -29,6 +29,7 @@ from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.utils import writer
 from nerfstudio.viewer.viewer import Viewer
 from rich.console import Console
+from rich.text import Text
 
 from nerfuser_ns import runs
 from nerfuser_ns.blending import BlendMethod
@@ -259,7 +260,9 @@ def entrypoint() -> None:
     try:
         command.main()
     except (FusionSpecError, RunLoadError, ViewerSetupError) as e:
-        ERR_CONSOLE.print(f"[bold red]ns-nerfuser-view: {' '.join(str(e).split())}[/bold red]", highlight=False)
+        # plain text, not console markup: a path like fusion[old].json must print as written
+        message = Text(f"ns-nerfuser-view: {' '.join(str(e).split())}", style="bold red")
+        ERR_CONSOLE.print(message, highlight=False)
         sys.exit(1)
 
 
