@@ -53,6 +53,7 @@ class MakeSceneConfig:
 def main(config: MakeSceneConfig) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.text import Text
 
     try:
         from nerfuser_ns.bench.scenes import make_layout, write_scene
@@ -88,7 +89,7 @@ def main(config: MakeSceneConfig) -> None:
             out = write_scene(layout, config.output_dir, supersample=config.supersample,
                               progress=lambda: progress.advance(task))
     except ValueError as err:
-        console.print(f"[bold red]error:[/bold red] {err}")
+        console.print(Text.assemble(("error: ", "bold red"), str(err)), soft_wrap=True)  # the message as written
         sys.exit(2)
     names = ", ".join(c.name for c in layout.captures)
     console.print(f"wrote {out} ({names}, test; {total} frames) in {time.perf_counter() - t0:.1f} s")
