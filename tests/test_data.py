@@ -129,7 +129,7 @@ def test_missing_registration_runs_registration(tmp_path, two_runs, monkeypatch)
         calls.append((list(config_paths), Path(output), list(names)))
         configs.append(kwargs.get("config"))
         entries = [NerfEntry(n, Path(c), np.eye(4)) for n, c in zip(names, config_paths, strict=True)]
-        fspec.write_registration(output, entries)
+        registration.write_minimal_registration(entries, output)
         return {}
 
     monkeypatch.setattr(registration, "register_runs", fake_register_runs)

@@ -233,6 +233,10 @@ def test_a_file_of_the_previous_format_reads_back_unchanged(tmp_path):
     assert reg.RegistrationResult.from_record(scored).to_record() == scored
     with pytest.raises(reg.RegistrationError, match="not a registration record"):
         reg.RegistrationResult.from_record({**old, "kind": "something else"})
+    # the fusion's view of it: the record's T_to_reference (not its alias)
+    items = list(reg.iter_registered_nerfs(PREVIOUS_FORMAT))
+    assert [(i.name, i.config, i.transform_key) for i in items] == [("capture_a", None, "T_to_reference"),
+                                                                     ("capture_b", None, "T_to_reference")]
 
 
 def test_the_typed_result_is_the_record(oc_record):
@@ -240,6 +244,20 @@ def test_the_typed_result_is_the_record(oc_record):
     assert result.to_record() == oc_record
     assert set(result.nerfs[1].extra) == {"ground_truth"} and set(result.extra) == {"ground_truth"}
     assert json.dumps(result.to_record(), indent=2) == json.dumps(oc_record, indent=2)  # key order too
+
+
+def test_minimal_form(tmp_path):
+    entries = [reg.NerfEntry("a", tmp_path / "a.yml", np.eye(4)),
+               reg.NerfEntry("b", tmp_path / "b.yml", sim3.make_sim3(np.eye(3), [1.0, 0.0, 0.0], 2.0))]  # fmt: skip
+    path = reg.write_minimal_registration(entries, tmp_path / "sub" / "reg.json")
+    assert [p.name for p in path.parent.iterdir()] == ["reg.json"]
+    items = list(reg.iter_registered_nerfs(path))
+    assert [(i.name, i.config, i.transform_key) for i in items] == [("a", str(tmp_path / "a.yml"), "transform"),
+                                                                     ("b", str(tmp_path / "b.yml"), "transform")]
+    np.testing.assert_array_equal(items[1].transform, entries[1].nerf_to_common)
+    with pytest.raises(reg.RegistrationFileError, match="nerfs.1.: missing config"):
+        path.write_text(json.dumps({"nerfs": [{"config": "a.yml", "transform": []}, {"transform": []}]}))
+        list(reg.iter_registered_nerfs(path))
 
 
 def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderers, oc_record, work, tmp_path, capsys):

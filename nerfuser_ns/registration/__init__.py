@@ -38,9 +38,14 @@ from nerfuser_ns.registration.pipeline import (
     resolve_sampling,
 )
 from nerfuser_ns.registration.record import (
+    NerfEntry,
+    RegisteredNerf,
+    RegistrationFileError,
     RegistrationResult,
+    iter_registered_nerfs,
     read_registration,
     work_dir_for,
+    write_minimal_registration,
     write_registration,
 )
 from nerfuser_ns.registration.refine import refine_transforms
@@ -55,11 +60,14 @@ __all__ = [
     "OPENGL_FROM_OPENCV",
     "SUGGESTION",
     "CrossRenderCheck",
+    "NerfEntry",
     "NerfEstimate",
     "PoseSamplingConfig",
+    "RegisteredNerf",
     "RegistrationConfig",
     "RegistrationError",
     "RegistrationFailed",
+    "RegistrationFileError",
     "RegistrationResult",
     "SamplingChoice",
     "SfMConfig",
@@ -68,6 +76,7 @@ __all__ = [
     "cross_render_check",
     "estimate_transform",
     "estimate_transforms",
+    "iter_registered_nerfs",
     "load_observations",
     "ncc",
     "read_registration",
@@ -83,5 +92,6 @@ __all__ = [
     "spanning_pairs",
     "validate_settings",
     "work_dir_for",
+    "write_minimal_registration",
     "write_registration",
 ]

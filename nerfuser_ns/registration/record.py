@@ -4,6 +4,7 @@
 ``T_to_reference`` (``p_ref = T @ [p, 1]``, also stored as ``transform``, the key of the minimal hand-written form),
 diagnostics, the pairs and their self-check, the SfM summary, the settings and timings. :class:`RegistrationResult`
 is that record typed (one field per value; :meth:`~RegistrationResult.to_record` writes the keys, aliases included).
+The fusion reads either form through :func:`iter_registered_nerfs` (:mod:`nerfuser_ns.spec` then checks the runs).
 
 Renders and SfM files go to a work folder, by default ``<output stem>_work`` beside the registration file
 (:func:`work_dir_for`).
@@ -12,7 +13,7 @@ Renders and SfM files go to a work folder, by default ``<output stem>_work`` bes
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -366,3 +367,94 @@ def read_registration(path: Path | str) -> dict:
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise RegistrationError(f"{path}: not a readable registration file ({type(e).__name__}: {e})") from None
     return record
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The fusion's view: each NeRF's run and transform, from a record or the minimal hand-written form
+
+
+@dataclass(frozen=True)
+class NerfEntry:
+    """One NeRF of the fusion: its run and its place in the common frame."""
+
+    name: str
+    """Unique name (share maps and logs use it)."""
+    config_path: Path
+    """The run's config.yml (absolute)."""
+    nerf_to_common: Float[np.ndarray, "4 4"] = field(compare=False)
+    """SIM(3) ``T`` with ``p_common = T @ [p_nerf, 1]`` (float64)."""
+
+    @property
+    def scale(self) -> float:
+        """``s`` of ``T``: a length L in NeRF units is ``s * L`` in common units."""
+        return float(np.cbrt(np.linalg.det(self.nerf_to_common[:3, :3])))
+
+    @property
+    def origin(self) -> Float[np.ndarray, "3"]:
+        """The NeRF's origin in the common frame."""
+        return self.nerf_to_common[:3, 3].copy()
+
+
+class RegistrationFileError(RegistrationError):
+    """A registration file the fusion cannot read; the message names the file (and the entry)."""
+
+
+@dataclass(frozen=True)
+class RegisteredNerf:
+    """One ``nerfs`` entry of a registration file as stored (the fusion checks the run and the transform)."""
+
+    index: int
+    name: str | None
+    """As stored (None or empty: unnamed)."""
+    config: Any
+    """The run's config.yml as stored (None: the entry registers no nerfstudio run)."""
+    transform_key: str
+    """``T_to_reference`` (what ``ns-nerfuser-register`` writes, preferred) or ``transform`` (the minimal form)."""
+    transform: Any
+    """The stored 4x4 (or 3x4) SIM(3) into the common frame."""
+    checkpoint: Any = None
+    """The registered weights (file, step, sha256), when recorded."""
+
+
+def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
+    """The NeRFs of a registration file, in order: a record (``kind: nerfuser_registration``) or the minimal
+    ``{"nerfs": [{name, config, transform}]}``.
+
+    Raises :class:`RegistrationFileError` (one line naming the file and the entry) for an unreadable file, another
+    kind, no ``nerfs`` list, or an entry without ``config`` and a transform, when iteration reaches it.
+    """
+    path = Path(path)
+    try:
+        data = _load_json(path)
+    except FileNotFoundError:
+        raise RegistrationFileError(f"{path}: no such registration file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise RegistrationFileError(f"{path}: not a readable JSON registration file ({e})") from None
+    if not isinstance(data, dict):
+        raise RegistrationFileError(f"{path}: expected a JSON object at the top level")
+    if data.get("kind", KIND) != KIND:
+        raise RegistrationFileError(f"{path}: not a registration file (kind {data.get('kind')!r})")
+    nerfs = data.get("nerfs")
+    if not isinstance(nerfs, list) or not nerfs:
+        raise RegistrationFileError(f"{path}: expected a non-empty list 'nerfs' of {{name, config, transform}}")
+    for i, item in enumerate(nerfs):
+        where = f"{path}: nerfs[{i}]"
+        if not isinstance(item, dict):
+            raise RegistrationFileError(f"{where}: expected an object with name, config, transform")
+        key = "T_to_reference" if "T_to_reference" in item else "transform"
+        missing = [k for k in ("config", key) if k not in item]
+        if missing:
+            raise RegistrationFileError(f"{where}: missing {', '.join(missing)}")
+        yield RegisteredNerf(i, item.get("name"), item["config"], key, item[key], item.get("checkpoint"))
+
+
+def write_minimal_registration(nerfs: Sequence[NerfEntry], path: Path | str) -> Path:
+    """Write the minimal registration file ``{"nerfs": [{name, config, transform}]}`` (config paths as given),
+    atomically."""
+    data = {
+        "nerfs": [
+            {"name": n.name, "config": str(n.config_path), "transform": np.asarray(n.nerf_to_common).tolist()}
+            for n in nerfs
+        ]
+    }
+    return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
