@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import atexit
 import hashlib
-import json
 import os
 import shutil
 import socket
@@ -37,6 +36,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from jaxtyping import Float
 from nerfstudio.viewer.viewer_elements import ViewerControl
+
+from nerfuser_ns.registration.record import read_render_poses, render_folders
 
 if TYPE_CHECKING:
     from nerfstudio.viewer.viewer import Viewer
@@ -132,11 +133,7 @@ def read_render_folder(folder: Path, nerf_to_common: np.ndarray) -> CameraSet:
 
     path = Path(folder) / "poses.json"
     try:
-        meta = json.loads(path.read_text())
-        views = meta["views"]
-        c2w = np.array([v["c2w"] for v in views], dtype=np.float64).reshape(-1, 4, 4)
-        kept = np.array([bool(v.get("kept", True)) for v in views], dtype=bool)
-        intr = meta["intrinsics"]
+        c2w, kept, intr = read_render_poses(folder)
     except FileNotFoundError:
         raise ViewerSetupError(f"{path}: no such file (the registration's renders were moved or deleted)") from None
     except (OSError, ValueError, KeyError, TypeError) as e:
@@ -144,25 +141,6 @@ def read_render_folder(folder: Path, nerf_to_common: np.ndarray) -> CameraSet:
     cams = _camera_set(transform_poses(nerf_to_common, c2w), intr["fx"], intr["fy"], intr["width"], intr["height"])
     cams.kept = kept
     return cams
-
-
-def _registration_render_folders(registration_path: Path) -> list[tuple[str, Path | None, Path | None]]:
-    """``(name, config, render_folder)`` per NeRF of a registration file (render_folder None when absent)."""
-    data = json.loads(registration_path.read_text())
-    out = []
-    for item in data.get("nerfs", []):
-        folder = item.get("render_folder")
-        config = item.get("config")
-        if folder is not None:
-            folder = Path(folder)
-            if not folder.is_absolute():
-                folder = registration_path.parent / folder
-            if not folder.is_dir():
-                # The work folder moved with the registration file: <stem>_work/renders/<key> beside it.
-                moved = registration_path.with_name(registration_path.stem + "_work") / "renders" / folder.name
-                folder = moved if moved.is_dir() else folder
-        out.append((str(item.get("name")), None if config is None else Path(config), folder))
-    return out
 
 
 def short_name(name: str) -> str:
@@ -192,7 +170,7 @@ def registration_cameras(spec: FusionSpec) -> tuple[list[CameraSet | None], list
     if spec.registration_path is None or not Path(spec.registration_path).is_file():
         return cams, notes
     try:
-        entries = _registration_render_folders(Path(spec.registration_path))
+        entries = render_folders(Path(spec.registration_path))
     except (OSError, ValueError, TypeError, AttributeError) as e:
         return cams, [f"{spec.registration_path}: registration cameras not shown ({type(e).__name__}: {e})"]
     for i, nerf in enumerate(spec.nerfs):

@@ -233,10 +233,12 @@ def test_a_file_of_the_previous_format_reads_back_unchanged(tmp_path):
     assert reg.RegistrationResult.from_record(scored).to_record() == scored
     with pytest.raises(reg.RegistrationError, match="not a registration record"):
         reg.RegistrationResult.from_record({**old, "kind": "something else"})
-    # the fusion's view of it: the record's T_to_reference (not its alias)
+    # the fusion's view of it: the record's T_to_reference (not its alias), the render folders beside it
     items = list(reg.iter_registered_nerfs(PREVIOUS_FORMAT))
     assert [(i.name, i.config, i.transform_key) for i in items] == [("capture_a", None, "T_to_reference"),
                                                                      ("capture_b", None, "T_to_reference")]
+    assert [f.folder for f in reg.render_folders(PREVIOUS_FORMAT)] == [
+        PREVIOUS_FORMAT.parent / n["render_folder"] for n in old["nerfs"]]  # fmt: skip
 
 
 def test_the_typed_result_is_the_record(oc_record):
@@ -255,9 +257,30 @@ def test_minimal_form(tmp_path):
     assert [(i.name, i.config, i.transform_key) for i in items] == [("a", str(tmp_path / "a.yml"), "transform"),
                                                                      ("b", str(tmp_path / "b.yml"), "transform")]
     np.testing.assert_array_equal(items[1].transform, entries[1].nerf_to_common)
+    assert reg.render_folders(path) == [("a", tmp_path / "a.yml", None), ("b", tmp_path / "b.yml", None)]
     with pytest.raises(reg.RegistrationFileError, match="nerfs.1.: missing config"):
         path.write_text(json.dumps({"nerfs": [{"config": "a.yml", "transform": []}, {"transform": []}]}))
         list(reg.iter_registered_nerfs(path))
+
+
+def test_work_folder_and_render_poses(tmp_path):
+    """The work folder is <output stem>_work beside the output; render folders moved with it are found there."""
+    assert reg.work_dir_for(tmp_path / "out" / "registration.json") == tmp_path / "out" / "registration_work"
+    sampling = reg.PoseSamplingConfig(source="hemisphere", num_poses=4, width=16, height=12)
+    views = reg.render_views_cached(FakeRenderer("a", "blank"), sampling, tmp_path / "old_work" / "renders",
+                                    Console(quiet=True))  # fmt: skip
+    output = tmp_path / "moved" / "registration.json"
+    output.parent.mkdir()
+    output.write_text(json.dumps({"kind": "nerfuser_registration",
+                                  "nerfs": [{"name": "a", "config": None, "render_folder": str(views.folder)}]}))
+    shutil.move(views.folder.parent.parent, reg.work_dir_for(output))
+    (entry,) = reg.render_folders(output)
+    assert entry.folder == reg.work_dir_for(output) / "renders" / views.folder.name and entry.config is None
+    poses = reg.read_render_poses(entry.folder)
+    np.testing.assert_array_equal(poses.c2w, views.c2w)
+    assert not poses.kept.any() and poses.intrinsics["width"] == 16  # blank views see nothing: left out of the SfM
+    with pytest.raises(FileNotFoundError):
+        reg.read_render_poses(views.folder)
 
 
 def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderers, oc_record, work, tmp_path, capsys):

@@ -7,7 +7,8 @@ is that record typed (one field per value; :meth:`~RegistrationResult.to_record`
 The fusion reads either form through :func:`iter_registered_nerfs` (:mod:`nerfuser_ns.spec` then checks the runs).
 
 Renders and SfM files go to a work folder, by default ``<output stem>_work`` beside the registration file
-(:func:`work_dir_for`).
+(:func:`work_dir_for`); :func:`render_folders` and :func:`read_render_poses` read the views each NeRF was rendered
+from, for display.
 """
 
 from __future__ import annotations
@@ -17,17 +18,17 @@ from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 
 from nerfuser_ns import sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration.config import FORMAT_VERSION, RegistrationConfig, RegistrationError, json_float
 from nerfuser_ns.registration.estimate import NerfEstimate
-from nerfuser_ns.registration.render_cache import ViewSet
+from nerfuser_ns.registration.render_cache import ViewSet, load_render_meta
 from nerfuser_ns.registration.self_check import CrossRenderCheck, passed
 from nerfuser_ns.registration.sfm import SfMResult
 from nerfuser_ns.renderers import Renderer
@@ -458,3 +459,61 @@ def write_minimal_registration(nerfs: Sequence[NerfEntry], path: Path | str) -> 
         ]
     }
     return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The views each NeRF was rendered from (for display)
+
+
+class RenderFolder(NamedTuple):
+    """Where one NeRF of a registration file was rendered."""
+
+    name: str
+    config: Path | None
+    folder: Path | None
+    """Its render folder (None when the file names none, e.g. the minimal form)."""
+
+
+def render_folders(path: Path | str) -> list[RenderFolder]:
+    """Per NeRF of a registration file, its name, run and render folder. A folder that is gone is looked up in the
+    work folder beside the file (:func:`work_dir_for`: the work folder moved with it). Raises ``OSError``,
+    ``ValueError``, ``TypeError`` or ``AttributeError`` on a malformed file."""
+    path = Path(path)
+    data = _load_json(path)
+    out = []
+    for item in data.get("nerfs", []):
+        folder = item.get("render_folder")
+        config = item.get("config")
+        if folder is not None:
+            folder = Path(folder)
+            if not folder.is_absolute():
+                folder = path.parent / folder
+            if not folder.is_dir():
+                # The work folder moved with the registration file: <stem>_work/renders/<key> beside it.
+                moved = work_dir_for(path) / "renders" / folder.name
+                folder = moved if moved.is_dir() else folder
+        out.append(RenderFolder(str(item.get("name")), None if config is None else Path(config), folder))
+    return out
+
+
+class RenderPoses(NamedTuple):
+    """The views of one render folder, in the NeRF's own frame."""
+
+    c2w: Float[np.ndarray, "n 4 4"]
+    kept: Bool[np.ndarray, " n"]
+    """Whether the SfM used the view (enough accumulation)."""
+    intrinsics: dict
+    """The render camera: fx, fy, cx, cy, width, height."""
+
+
+def read_render_poses(folder: Path | str) -> RenderPoses:
+    """The poses a registration rendered one NeRF from (its render folder's ``poses.json``).
+
+    Raises ``FileNotFoundError`` when it is gone; ``OSError``, ``ValueError``, ``KeyError`` or ``TypeError`` when it
+    is unreadable.
+    """
+    meta = load_render_meta(folder)
+    views = meta["views"]
+    c2w = np.array([v["c2w"] for v in views], dtype=np.float64).reshape(-1, 4, 4)
+    kept = np.array([bool(v.get("kept", True)) for v in views], dtype=bool)
+    return RenderPoses(c2w, kept, meta["intrinsics"])
