@@ -25,9 +25,11 @@ Relative paths are relative to the spec file's folder. ``--data`` may also point
 
 Registration file
 -----------------
-All reading of it goes through :func:`read_registration`. It reads what ``ns-nerfuser-register``
-(:mod:`nerfuser_ns.registration`) writes (``kind: nerfuser_registration``; per NeRF ``name``, ``config``,
-``T_to_reference``), and a minimal hand-written form::
+All reading of it goes through :func:`read_registration`, which parses it with
+:mod:`nerfuser_ns.registration.record` (the one owner of the file's format) and checks the runs and transforms. It
+reads what ``ns-nerfuser-register`` (:mod:`nerfuser_ns.registration`) writes (``kind: nerfuser_registration``; per
+NeRF ``name``, ``config``, ``T_to_reference``), and a minimal hand-written form
+(:func:`~nerfuser_ns.registration.record.write_minimal_registration`)::
 
     {"nerfs": [{"name": "a", "config": "path/to/config.yml", "transform": <4x4 list>}, ...]}
 
@@ -50,6 +52,7 @@ from rich.console import Console
 
 from nerfuser_ns import registration
 from nerfuser_ns.registration import RegistrationConfig
+from nerfuser_ns.registration.record import NerfEntry, RegistrationFileError, iter_registered_nerfs
 from nerfuser_ns.runs import RunLoadError, checkpoint_identity, default_device, read_config, resolve_config_path
 
 SPEC_FILENAME = "fusion.json"
@@ -65,28 +68,6 @@ CONSOLE = Console(width=120)
 
 class FusionSpecError(ValueError):
     """The fusion spec or registration file cannot be used; the message (one line) names the file and the fix."""
-
-
-@dataclass(frozen=True)
-class NerfEntry:
-    """One NeRF of the fusion: its run and its place in the common frame."""
-
-    name: str
-    """Unique name (share maps and logs use it)."""
-    config_path: Path
-    """The run's config.yml (absolute)."""
-    nerf_to_common: Float[np.ndarray, "4 4"] = field(compare=False)
-    """SIM(3) ``T`` with ``p_common = T @ [p_nerf, 1]`` (float64)."""
-
-    @property
-    def scale(self) -> float:
-        """``s`` of ``T``: a length L in NeRF units is ``s * L`` in common units."""
-        return float(np.cbrt(np.linalg.det(self.nerf_to_common[:3, :3])))
-
-    @property
-    def origin(self) -> Float[np.ndarray, "3"]:
-        """The NeRF's origin in the common frame."""
-        return self.nerf_to_common[:3, 3].copy()
 
 
 @dataclass
@@ -134,7 +115,6 @@ __all__ = [
     "run_registration",
     "validate_sim3",
     "write_fusion_spec",
-    "write_registration",
 ]
 
 
@@ -225,9 +205,9 @@ def _same_file(a: Path, b: Path) -> bool:
 def read_registration(path: Path | str, check_runs: bool = True) -> list[NerfEntry]:
     """Every NeRF of a registration file: name, config.yml and its SIM(3) into the common frame.
 
-    The ONE place that knows the registration file's format: ``ns-nerfuser-register``'s record
-    (``kind: nerfuser_registration``; per NeRF ``name``, ``config``, ``T_to_reference``) or the minimal
-    ``{"nerfs": [{name, config, transform}]}`` (see the module docstring).
+    The file is parsed by :func:`nerfuser_ns.registration.record.iter_registered_nerfs` (``ns-nerfuser-register``'s
+    record or the minimal ``{"nerfs": [{name, config, transform}]}``, see the module docstring); here each entry's
+    run and transform are checked for fusion.
 
     Args:
         path: the registration file.
@@ -238,51 +218,28 @@ def read_registration(path: Path | str, check_runs: bool = True) -> list[NerfEnt
             or duplicate names; one line naming the file and the entry.
     """
     path = Path(path).absolute()
-    data = _read_json(path, "registration")
-    if data.get("kind", "nerfuser_registration") != "nerfuser_registration":
-        raise spec_error(path, f"not a registration file (kind {data.get('kind')!r})")
-    nerfs = data.get("nerfs")
-    if not isinstance(nerfs, list) or not nerfs:
-        raise spec_error(path, "expected a non-empty list 'nerfs' of {name, config, transform}")
     entries: list[NerfEntry] = []
-    for i, item in enumerate(nerfs):
-        where = f"{path}: nerfs[{i}]"
-        if not isinstance(item, dict):
-            raise FusionSpecError(one_line(f"{where}: expected an object with name, config, transform"))
-        key = "T_to_reference" if "T_to_reference" in item else "transform"
-        missing = [k for k in ("config", key) if k not in item]
-        if missing:
-            raise FusionSpecError(one_line(f"{where}: missing {', '.join(missing)}"))
-        if item["config"] is None:
-            raise FusionSpecError(one_line(f"{where}: registers no nerfstudio run (config is null); cannot fuse it"))
-        config_path = _resolve(path.parent, item["config"], f"{where}.config")
-        if check_runs:
-            config_path = _check_run(config_path, f"{where}.config")
-            if item.get("checkpoint") is not None:
-                _check_same_weights(config_path, item["checkpoint"], path)
-        T = validate_sim3(item[key], f"{where}.{key}")
-        name = item.get("name") or f"nerf{i}"
-        entries.append(NerfEntry(name=str(name), config_path=config_path, nerf_to_common=T))
+    try:
+        for item in iter_registered_nerfs(path):  # entry by entry: an entry's errors come before the next one's
+            where = f"{path}: nerfs[{item.index}]"
+            if item.config is None:
+                raise FusionSpecError(
+                    one_line(f"{where}: registers no nerfstudio run (config is null); cannot fuse it")
+                )
+            config_path = _resolve(path.parent, item.config, f"{where}.config")
+            if check_runs:
+                config_path = _check_run(config_path, f"{where}.config")
+                if item.checkpoint is not None:
+                    _check_same_weights(config_path, item.checkpoint, path)
+            T = validate_sim3(item.transform, f"{where}.{item.transform_key}")
+            name = item.name or f"nerf{item.index}"
+            entries.append(NerfEntry(name=str(name), config_path=config_path, nerf_to_common=T))
+    except RegistrationFileError as e:
+        raise FusionSpecError(one_line(str(e))) from None
     names = [e.name for e in entries]
     if len(set(names)) != len(names):
         raise spec_error(path, f"duplicate NeRF names {sorted({n for n in names if names.count(n) > 1})}")
     return entries
-
-
-def write_registration(path: Path | str, nerfs: list[NerfEntry]) -> Path:
-    """Writes a registration file in the format :func:`read_registration` reads (config paths stay absolute)."""
-    path = Path(path)
-    data = {
-        "nerfs": [
-            {"name": n.name, "config": str(n.config_path), "transform": np.asarray(n.nerf_to_common).tolist()}
-            for n in nerfs
-        ]
-    }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    tmp.replace(path)
-    return path
 
 
 def run_registration(

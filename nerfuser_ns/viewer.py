@@ -26,7 +26,6 @@ from __future__ import annotations
 import atexit
 import contextlib
 import hashlib
-import json
 import os
 import shutil
 import tempfile
@@ -49,6 +48,7 @@ from viser import infra
 
 from nerfuser_ns import runs
 from nerfuser_ns.blending import SHARE_PALETTE
+from nerfuser_ns.registration.record import read_render_poses, render_folders
 from nerfuser_ns.sim3 import transform_poses
 from nerfuser_ns.spec import FusionSpecError, read_fusion_spec
 
@@ -149,11 +149,7 @@ def read_render_folder(folder: Path, nerf_to_common: np.ndarray) -> CameraSet:
     """
     path = Path(folder) / "poses.json"
     try:
-        meta = json.loads(path.read_text())
-        views = meta["views"]
-        c2w = np.array([v["c2w"] for v in views], dtype=np.float64).reshape(-1, 4, 4)
-        kept = np.array([bool(v.get("kept", True)) for v in views], dtype=bool)
-        intr = meta["intrinsics"]
+        c2w, kept, intr = read_render_poses(folder)
     except FileNotFoundError:
         raise ViewerSetupError(f"{path}: no such file (the registration's renders were moved or deleted)") from None
     except (OSError, ValueError, KeyError, TypeError) as e:
@@ -161,25 +157,6 @@ def read_render_folder(folder: Path, nerf_to_common: np.ndarray) -> CameraSet:
     cams = _camera_set(transform_poses(nerf_to_common, c2w), intr["fx"], intr["fy"], intr["width"], intr["height"])
     cams.kept = kept
     return cams
-
-
-def _registration_render_folders(registration_path: Path) -> list[tuple[str, Path | None, Path | None]]:
-    """``(name, config, render_folder)`` per NeRF of a registration file (render_folder None when absent)."""
-    data = json.loads(registration_path.read_text())
-    out = []
-    for item in data.get("nerfs", []):
-        folder = item.get("render_folder")
-        config = item.get("config")
-        if folder is not None:
-            folder = Path(folder)
-            if not folder.is_absolute():
-                folder = registration_path.parent / folder
-            if not folder.is_dir():
-                # The work folder moved with the registration file: <stem>_work/renders/<key> beside it.
-                moved = registration_path.with_name(registration_path.stem + "_work") / "renders" / folder.name
-                folder = moved if moved.is_dir() else folder
-        out.append((str(item.get("name")), None if config is None else Path(config), folder))
-    return out
 
 
 def short_name(name: str) -> str:
@@ -209,7 +186,7 @@ def registration_cameras(spec: FusionSpec) -> tuple[list[CameraSet | None], list
     if spec.registration_path is None or not Path(spec.registration_path).is_file():
         return cams, notes
     try:
-        entries = _registration_render_folders(Path(spec.registration_path))
+        entries = render_folders(Path(spec.registration_path))
     except (OSError, ValueError, TypeError, AttributeError) as e:
         return cams, [f"{spec.registration_path}: registration cameras not shown ({type(e).__name__}: {e})"]
     for i, nerf in enumerate(spec.nerfs):

@@ -44,6 +44,7 @@ from rich.console import Console
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout, render_camera, to_uint8, write_capture
 from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.registration import read_registration
 from nerfuser_ns.spec import write_fusion_spec
 
 CONSOLE = Console(width=120)
@@ -266,7 +267,7 @@ def score_case(layout, case_dir: Path, spec: str) -> dict:
     record: dict = {"case": case_dir.name, "spec": spec, "captures": captures}
     reg_path = case_dir / "registration.json"
     if reg_path.is_file():
-        reg = json.loads(reg_path.read_text())
+        reg = read_registration(reg_path)
         ref = reg["reference"]["index"]
         errors = []
         for i, n in enumerate(reg["nerfs"]):

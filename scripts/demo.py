@@ -149,6 +149,7 @@ def main(cfg: DemoConfig) -> None:
         for name, run in loaded.items()
     }
     if cfg.register:
+        from nerfuser_ns import registration
         from nerfuser_ns.spec import read_registration
 
         reg_path = cfg.output_dir / "registration.json"
@@ -170,7 +171,7 @@ def main(cfg: DemoConfig) -> None:
         # scored against the truth afterwards: the registration never sees it
         truth = nerf_to_world_from_captures([np.asarray(captures[name]["capture_to_world"]) for name in configs],
                                             [loaded[name].data_to_nerf for name in configs])
-        record = score_registration(json.loads(reg_path.read_text()), truth)
+        record = score_registration(registration.read_registration(reg_path), truth)
         transforms_sets["estimated"] = {
             name: entry.nerf_to_common for name, entry in zip(configs, entries, strict=True)
         }

@@ -17,7 +17,7 @@ from nerfuser_ns.method_configs.nerfuser import nerfuser_config
 from PIL import Image
 
 from nerfuser_ns import data as fdata
-from nerfuser_ns import sim3
+from nerfuser_ns import registration, sim3
 from nerfuser_ns import spec as fspec
 from nerfuser_ns.spec import FusionSpecError, NerfEntry, read_fusion_spec, read_registration
 
@@ -122,7 +122,7 @@ def test_single_run_needs_no_registration(tmp_path, two_runs):
 
 def test_missing_registration_runs_registration(tmp_path, two_runs, monkeypatch):
     """No registration file and several runs: nerfuser_ns.registration.register_runs is called and its file read."""
-    import nerfuser_ns.registration as registration
+
 
     calls, configs = [], []
 
@@ -130,7 +130,7 @@ def test_missing_registration_runs_registration(tmp_path, two_runs, monkeypatch)
         calls.append((list(config_paths), Path(output), list(names)))
         configs.append(kwargs.get("config"))
         entries = [NerfEntry(n, Path(c), np.eye(4)) for n, c in zip(names, config_paths, strict=True)]
-        fspec.write_registration(output, entries)
+        registration.write_minimal_registration(entries, output)
         return {}
 
     monkeypatch.setattr(registration, "register_runs", fake_register_runs)
@@ -460,7 +460,7 @@ def test_the_automatic_registration_says_what_it_runs_before_it_starts(tmp_path,
     def register_runs(config_paths, output, config=None, names=None, device="cpu"):
         calls.append(capsys.readouterr().out)  # what was printed before the work started
         entries = [NerfEntry(n, Path(c), np.eye(4)) for n, c in zip(names, config_paths, strict=True)]
-        fspec.write_registration(output, entries)
+        registration.write_minimal_registration(entries, output)
 
     monkeypatch.setattr(fspec.registration, "register_runs", register_runs)
     spec = read_fusion_spec(fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b]))

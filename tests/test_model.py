@@ -21,7 +21,8 @@ from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.training import train
 from nerfuser_ns.blending import BLEND_METHODS
 from nerfuser_ns.model import NerfuserModel, fuse_models, map_rays
-from nerfuser_ns.spec import NerfEntry, write_fusion_spec, write_registration
+from nerfuser_ns.registration import NerfEntry, write_minimal_registration
+from nerfuser_ns.spec import write_fusion_spec
 
 pytestmark = pytest.mark.slow
 
@@ -304,9 +305,9 @@ def fused_run(trained, tiny_scene, tmp_path_factory) -> Path:
     gt = json.loads((tiny_scene / "ground_truth.json").read_text())
     capture_to_world = np.array(gt["captures"][0]["capture_to_world"])
     world_to_common = trained.data_to_nerf @ np.linalg.inv(capture_to_world)  # the test capture is world-posed
-    write_registration(
-        root / "registration.json",
+    write_minimal_registration(
         [NerfEntry("a", trained.config_path, np.eye(4)), NerfEntry("b", b_dir / "config.yml", T_FAR)],
+        root / "registration.json",
     )
     spec = write_fusion_spec(
         root / "fusion.json",

@@ -30,6 +30,9 @@ from nerfuser_ns.bench.ground_truth import (
     score_registration,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
+from nerfuser_ns.registration import estimate as reg_estimate
+from nerfuser_ns.registration import pipeline as reg_pipeline
+from nerfuser_ns.registration import sfm as reg_sfm
 from nerfuser_ns.renderers import RenderBatch, Renderer
 from nerfuser_ns.sampling import sample_hemisphere_poses
 from nerfuser_ns.scripts import register as cli
@@ -206,6 +209,80 @@ def test_registration_file_round_trip(oc_record, tmp_path):
         reg.read_registration(tmp_path / "bad.json")
 
 
+PREVIOUS_FORMAT = Path(__file__).parent / "data" / "registration_format1.json"
+"""Written by ``registration.register`` + ``write_registration`` before registration became a package (e8e5829):
+oc_layout, small_config(), work folder ``registration_work``."""
+
+
+def test_a_file_of_the_previous_format_reads_back_unchanged(tmp_path):
+    text = PREVIOUS_FORMAT.read_text()
+    old = json.loads(text)
+    back = reg.read_registration(PREVIOUS_FORMAT)
+    assert all(isinstance(n["T_to_reference"], np.ndarray) for n in back["nerfs"])
+    as_json = json.loads(json.dumps(back, default=lambda a: a.tolist()))
+    assert as_json == old and list(back) == list(old)
+    # typed and back: the same record, key order included (a rewrite is byte-identical)
+    result = reg.RegistrationResult.from_record(back)
+    assert result.reference == 0 and [n.name for n in result.nerfs] == ["capture_a", "capture_b"]
+    np.testing.assert_array_equal(result.nerfs[1].T_to_reference, old["nerfs"][1]["transform"])
+    assert result.pairs[0].self_check.passed and result.sfm.reused is False and result.extra == {}
+    assert result.to_record() == old
+    assert reg.write_registration(result.to_record(), tmp_path / "again.json").read_text() == text
+    # keys a later reader adds (the kit's scores) are kept
+    scored = score_registration(back, [np.eye(4), np.eye(4)])
+    assert reg.RegistrationResult.from_record(scored).to_record() == scored
+    with pytest.raises(reg.RegistrationError, match="not a registration record"):
+        reg.RegistrationResult.from_record({**old, "kind": "something else"})
+    # the fusion's view of it: the record's T_to_reference (not its alias), the render folders beside it
+    items = list(reg.iter_registered_nerfs(PREVIOUS_FORMAT))
+    assert [(i.name, i.config, i.transform_key) for i in items] == [("capture_a", None, "T_to_reference"),
+                                                                     ("capture_b", None, "T_to_reference")]
+    assert [f.folder for f in reg.render_folders(PREVIOUS_FORMAT)] == [
+        PREVIOUS_FORMAT.parent / n["render_folder"] for n in old["nerfs"]]  # fmt: skip
+
+
+def test_the_typed_result_is_the_record(oc_record):
+    result = reg.RegistrationResult.from_record(oc_record)
+    assert result.to_record() == oc_record
+    assert set(result.nerfs[1].extra) == {"ground_truth"} and set(result.extra) == {"ground_truth"}
+    assert json.dumps(result.to_record(), indent=2) == json.dumps(oc_record, indent=2)  # key order too
+
+
+def test_minimal_form(tmp_path):
+    entries = [reg.NerfEntry("a", tmp_path / "a.yml", np.eye(4)),
+               reg.NerfEntry("b", tmp_path / "b.yml", sim3.make_sim3(np.eye(3), [1.0, 0.0, 0.0], 2.0))]  # fmt: skip
+    path = reg.write_minimal_registration(entries, tmp_path / "sub" / "reg.json")
+    assert [p.name for p in path.parent.iterdir()] == ["reg.json"]
+    items = list(reg.iter_registered_nerfs(path))
+    assert [(i.name, i.config, i.transform_key) for i in items] == [("a", str(tmp_path / "a.yml"), "transform"),
+                                                                     ("b", str(tmp_path / "b.yml"), "transform")]
+    np.testing.assert_array_equal(items[1].transform, entries[1].nerf_to_common)
+    assert reg.render_folders(path) == [("a", tmp_path / "a.yml", None), ("b", tmp_path / "b.yml", None)]
+    with pytest.raises(reg.RegistrationFileError, match="nerfs.1.: missing config"):
+        path.write_text(json.dumps({"nerfs": [{"config": "a.yml", "transform": []}, {"transform": []}]}))
+        list(reg.iter_registered_nerfs(path))
+
+
+def test_work_folder_and_render_poses(tmp_path):
+    """The work folder is <output stem>_work beside the output; render folders moved with it are found there."""
+    assert reg.work_dir_for(tmp_path / "out" / "registration.json") == tmp_path / "out" / "registration_work"
+    sampling = reg.PoseSamplingConfig(source="hemisphere", num_poses=4, width=16, height=12)
+    views = reg.render_views_cached(FakeRenderer("a", "blank"), sampling, tmp_path / "old_work" / "renders",
+                                    Console(quiet=True))  # fmt: skip
+    output = tmp_path / "moved" / "registration.json"
+    output.parent.mkdir()
+    output.write_text(json.dumps({"kind": "nerfuser_registration",
+                                  "nerfs": [{"name": "a", "config": None, "render_folder": str(views.folder)}]}))
+    shutil.move(views.folder.parent.parent, reg.work_dir_for(output))
+    (entry,) = reg.render_folders(output)
+    assert entry.folder == reg.work_dir_for(output) / "renders" / views.folder.name and entry.config is None
+    poses = reg.read_render_poses(entry.folder)
+    np.testing.assert_array_equal(poses.c2w, views.c2w)
+    assert not poses.kept.any() and poses.intrinsics["width"] == 16  # blank views see nothing: left out of the SfM
+    with pytest.raises(FileNotFoundError):
+        reg.read_render_poses(views.folder)
+
+
 def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderers, oc_record, work, tmp_path, capsys):
     gt = []
     for i, T in enumerate(gt_of(oc_layout)):
@@ -281,7 +358,7 @@ def test_pose_guided_pairs_are_linear_in_the_image_count(tmp_path):
 
     cfg = reg.SfMConfig(own_neighbors=4, cross_views=6)
     views = [viewset("a", 40), viewset("b", 40), viewset("c", 40)]
-    pairs = reg._cheap_pairs(views, [v.image_names for v in views], cfg)
+    pairs = reg_sfm._cheap_pairs(views, [v.image_names for v in views], cfg)
     assert len(pairs) == len(set(pairs)) and all(a < b for a, b in pairs)
     assert len(pairs) <= 120 * (4 + 2 * 6)
     n_ab = sum(a.startswith("a/") and b.startswith("b/") for a, b in pairs)
@@ -330,7 +407,7 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
             raise reg.RegistrationError("a: its views form a separate SfM model")
         return {"nerfs": []}
 
-    monkeypatch.setattr(reg, "_register_once", once)
+    monkeypatch.setattr(reg_pipeline, "register_once", once)
     console = Console(record=True, width=200)
     record = reg.register(oc_renderers, reg.RegistrationConfig(), work, console=console)
     assert tried == ["training", "both"]
@@ -341,7 +418,7 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     for line in ("pose sampling: training", "training poses did not register", "pose sampling: both"):
         assert line in text, line
     # every choice failing: the last error is the one raised
-    monkeypatch.setattr(reg, "_register_once", lambda *a: (_ for _ in ()).throw(reg.RegistrationError("no")))
+    monkeypatch.setattr(reg_pipeline, "register_once", lambda *a: (_ for _ in ()).throw(reg.RegistrationError("no")))
     with pytest.raises(reg.RegistrationError, match="no"):
         reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
 
@@ -383,7 +460,7 @@ def perturb_second_estimate(monkeypatch) -> None:
         calls.append(est)
         return dataclasses.replace(est, T=WRONG @ est.T) if len(calls) == 2 else est
 
-    monkeypatch.setattr(reg.sim3, "estimate_sim3_from_poses", perturbed)
+    monkeypatch.setattr(reg_estimate.sim3, "estimate_sim3_from_poses", perturbed)
 
 
 @pytest.mark.parametrize("refine", [False, True])
@@ -399,7 +476,7 @@ def test_register_fails_when_the_estimate_is_wrong(
             T[1] = WRONG @ T[1]
             return T, summary
 
-        monkeypatch.setattr(reg, "refine_transforms", perturbed_refine)
+        monkeypatch.setattr(reg_pipeline, "refine_transforms", perturbed_refine)
     else:
         perturb_second_estimate(monkeypatch)
     rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, refine=refine)

@@ -27,8 +27,7 @@ from rich.table import Table
 from rich.text import Text
 
 from nerfuser_ns import runs, sim3
-from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.registration import RegistrationError, read_registration
+from nerfuser_ns.registration import RegistrationError, read_registration, write_registration
 from nerfuser_ns.spec import FusionSpecError, validate_sim3
 
 FAILURE_RULE = "NaN, r_err > 5 deg, t_err > 0.2 (reference units) or s_err = |log s| > 0.1"
@@ -162,7 +161,7 @@ class ScoreCommand:
             raise RegistrationError(f"--output {output} is the input registration file; write the scores elsewhere")
         record = read_registration(self.registration)
         scored = score_registration(record, self.truth(record))
-        write_text_atomic(output, json.dumps(scored, indent=2) + "\n")
+        write_registration(scored, output)
         print_scores(scored, console)
         console.print(f"[bold green]wrote[/] {output}")
         return scored

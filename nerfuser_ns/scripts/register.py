@@ -27,6 +27,7 @@ from nerfuser_ns.registration import (
     RegistrationError,
     RegistrationFailed,
     register,
+    work_dir_for,
     write_registration,
 )
 from nerfuser_ns.renderers import NerfstudioRenderer
@@ -68,7 +69,7 @@ class RegisterCommand(RegistrationConfig):
                                    data_override=self.data[i] if self.data else None)
                 for i, c in enumerate(self.configs)
             ]  # fmt: skip
-        work_dir = self.work_dir or self.output.with_name(self.output.stem + "_work")
+        work_dir = self.work_dir or work_dir_for(self.output)
         self._check_outputs(work_dir, renderers)
         config = RegistrationConfig(**{f: getattr(self, f) for f in RegistrationConfig.__dataclass_fields__})
         try:

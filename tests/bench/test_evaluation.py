@@ -18,7 +18,7 @@ from nerfuser_ns.bench.evaluation import EvaluationError, SceneRuns
 from nerfuser_ns.bench.training import train
 from nerfuser_ns.blending import BLEND_METHODS
 from nerfuser_ns.cameras import camera_rays
-from nerfuser_ns.spec import NerfEntry, write_registration
+from nerfuser_ns.registration import NerfEntry, write_minimal_registration
 
 pytestmark = pytest.mark.slow
 
@@ -74,11 +74,11 @@ def test_ground_truth_transforms_are_consistent(tiny):
 def test_registered_transforms_follow_capture_order(tiny, tmp_path):
     T = tiny.nerf_to_common()
     entries = [NerfEntry(n, c, t) for n, c, t in zip(tiny.captures, tiny.configs, T, strict=True)]
-    path = write_registration(tmp_path / "reg.json", entries[::-1])
+    path = write_minimal_registration(entries[::-1], tmp_path / "reg.json")
     got = evaluation.registered_transforms(path, tiny)
     for a, b in zip(got, T, strict=True):
         np.testing.assert_allclose(a, b, atol=1e-9)
-    other = write_registration(tmp_path / "other.json", [NerfEntry("zzz", tiny.configs[0], np.eye(4))])
+    other = write_minimal_registration([NerfEntry("zzz", tiny.configs[0], np.eye(4))], tmp_path / "other.json")
     with pytest.raises(EvaluationError, match="no NeRF named 'capture_a'"):
         evaluation.registered_transforms(other, tiny)
 
@@ -130,9 +130,9 @@ def test_geometric_gammas():
 
 
 def test_bench_blending_script(tiny, tmp_path):
-    reg = write_registration(tmp_path / "reg.json", [
+    reg = write_minimal_registration([
         NerfEntry(n, c, T) for n, c, T in zip(tiny.captures, tiny.configs, tiny.nerf_to_common(), strict=True)
-    ])  # fmt: skip
+    ], tmp_path / "reg.json")  # fmt: skip
     runs_dir = tiny.configs[0].parents[3]
     out = tmp_path / "bench" / "blending.json"
     cmd = [

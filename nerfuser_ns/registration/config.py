@@ -1,0 +1,210 @@
+"""Registration settings, errors and constants, shared by every step of :mod:`nerfuser_ns.registration`.
+
+Also the small conventions the steps share: content hashes of cache keys and JSON-safe numbers (matrices rounded to
+12 digits, NaN / inf stored as null).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from rich.console import Console
+
+from nerfuser_ns.cameras import Intrinsics, intrinsics_from_fov
+from nerfuser_ns.sampling import sample_hemisphere_poses
+
+FORMAT_VERSION = 1
+CONSOLE = Console(width=120)
+SUGGESTION = (
+    "render more poses (--sampling.num-poses), a larger radius (--sampling.radius) or the run's training poses "
+    "(--sampling.source training|both)"
+)
+DEFAULT_RENDER_SIZE = (400, 300, 60.0)
+"""Render width, height and horizontal field of view when the reference run's training cameras are unknown."""
+
+
+class RegistrationError(ValueError):
+    """Registration cannot produce a trustworthy result; the one-line message names the NeRF and what to change."""
+
+
+class RegistrationFailed(RegistrationError):
+    """The self-check rejected the solution; ``record`` holds it (with the scores) for inspection."""
+
+    def __init__(self, message: str, record: dict):
+        super().__init__(message)
+        self.record = record
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Settings
+
+
+@dataclass
+class PoseSamplingConfig:
+    """Which views of each NeRF to render, in the NeRF's own frame."""
+
+    source: Literal["auto", "hemisphere", "training", "both"] = "auto"
+    """Poses to render: the paper's hemisphere, the run's own training poses, or both. ``auto``: the training poses
+    when every run's dataset is readable, then training + hemisphere, then the hemisphere alone if a choice does not
+    register; the hemisphere when a dataset is gone. What was chosen, and why, is printed and recorded."""
+    num_poses: int = 32
+    """Hemisphere poses per NeRF (the paper uses 32 on object scenes, 60 on ScanNet)."""
+    radius: float = 1.0
+    """Hemisphere radius, in the NeRF's units."""
+    elevation_range_deg: tuple[float, float] = (0.0, 30.0)
+    """(min, max) elevation of the hemisphere rings above the NeRF's xy plane (+z up)."""
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Centre of the hemisphere (the cameras look at it)."""
+    jitter_deg: float = 0.0
+    """Random perturbation of azimuth / elevation (0: the deterministic ring layout)."""
+    seed: int = 0
+    """Seed of the jitter and of the training-pose subset (0: evenly spaced through the run's list; any other seed: a
+    random subset, for benchmarks over pose draws)."""
+    max_training_poses: int = 32
+    """At most this many training poses per NeRF."""
+    width: int | None = None
+    """Rendered image width in pixels (default: ``size`` along the longer side of the reference run's training
+    cameras, their aspect kept; 400 when its dataset is gone)."""
+    height: int | None = None
+    """Rendered image height in pixels (default: as ``width``; 300 when the reference run's dataset is gone)."""
+    fov_deg: float | None = None
+    """Horizontal field of view of the renders (square pixels, centred principal point). Default: that of the reference
+    run's training cameras (median focal length over width); 60 when its dataset is gone."""
+    size: int = 400
+    """With the default width and height: the longer side of the renders, in pixels, whatever the training images'
+    size (a NeRF renders at any resolution; SIFT needs texture at this size: 200x150 renders of a room gave too few
+    features, and larger renders cost time on a CPU)."""
+    min_view_accumulation: float = 0.5
+    """Views whose mean accumulation (opacity) is below this see mostly nothing and are left out of the SfM."""
+
+    def intrinsics(self) -> Intrinsics:
+        """The render intrinsics; unset values are :data:`DEFAULT_RENDER_SIZE`'s (``resolve_sampling`` sets them
+        from the runs' training cameras first)."""
+        width, height, fov = (d if v is None else v for v, d in zip((self.width, self.height, self.fov_deg),
+                                                                     DEFAULT_RENDER_SIZE, strict=True))  # fmt: skip
+        fx, fy, cx, cy = intrinsics_from_fov(width, height, fov)
+        return Intrinsics(fx, fy, cx, cy, width, height)
+
+
+@dataclass
+class SfMConfig:
+    """pycolmap settings for the one SfM over all renders."""
+
+    exhaustive_max_images: int = 100
+    """Match every pair up to this many images; above, match each image to its nearest views of its own NeRF
+    (known poses) and to a spread subset of every other NeRF's views (linear in the number of images)."""
+    own_neighbors: int = 10
+    """Cheap scheme: nearest views of the same NeRF each image is matched to."""
+    cross_views: int = 24
+    """Cheap scheme: views of each other NeRF each image is matched to."""
+    max_num_features: int = 8192
+    """SIFT features per image."""
+    min_model_size: int = 3
+    """Smaller SfM models are discarded (pycolmap's default, 10, would hide small separate models)."""
+    min_num_inliers: int = 10
+    """Geometric verification: inlier matches an image pair needs (COLMAP: 15). Renders of different NeRFs share
+    fewer features than photos of one capture; the cross-render self-check guards against wrong links."""
+    min_num_matches: int = 10
+    """Mapping: verified matches a pair needs to be used (COLMAP: 15)."""
+    abs_pose_min_num_inliers: int = 15
+    """Mapping: 2D-3D inliers an image needs to register (COLMAP: 30)."""
+    abs_pose_min_inlier_ratio: float = 0.15
+    """Mapping: inlier ratio an image needs to register (COLMAP: 0.25)."""
+    num_threads: int = -1
+    """Threads for extraction, matching and mapping (-1: all cores)."""
+    seed: int = 0
+    """pycolmap's random seed (mapping and RANSAC), for reproducible runs."""
+    verbose: bool = False
+    """Show COLMAP's own log (INFO level)."""
+
+
+@dataclass
+class RegistrationConfig:
+    """Registration from re-rendering: pose sampling, SfM, estimator and self-check settings."""
+
+    sampling: PoseSamplingConfig = field(default_factory=PoseSamplingConfig)
+    """Which views of each NeRF to render."""
+    sfm: SfMConfig = field(default_factory=SfMConfig)
+    """SfM settings."""
+    estimator: Literal["nerfuser", "nerfuser-median", "umeyama-ransac"] = "nerfuser"
+    """nerfuser: the paper's median pairwise scale and robust (L1) bridge average; nerfuser-median: the bridges'
+    element-wise median as in the paper's code; umeyama-ransac: Umeyama on camera centres with LO-RANSAC (pycolmap)."""
+    umeyama_max_error: float = 0.05
+    """umeyama-ransac: inlier threshold on camera centres, in the NeRF's units."""
+    refine: bool = True
+    """Refine the estimator's SIM(3)s by bundle adjustment in which each NeRF's cameras move together (their poses
+    are known in the NeRF's frame): 7 unknowns per NeRF fitted to every feature seen by two NeRFs, instead of one pose
+    per camera (measured: median rotation error 2-3x lower on CPU-trained nerfacto NeRFs)."""
+    refine_loss_scale_px: float = 1.0
+    """Refinement: soft-L1 loss scale in pixels (reprojection errors well above it barely pull)."""
+    reference: int = 0
+    """Index of the NeRF whose frame is the common frame."""
+    min_registered_views: int = 2
+    """Each NeRF needs at least this many views registered in the SfM model (umeyama-ransac needs 3)."""
+    self_check_views: int = 4
+    """Cross-render check: views per direction and NeRF pair (0 disables the check)."""
+    ncc_threshold: float = 0.4
+    """Fail when a checked pair's cross-render NCC is below this. Calibrated on CPU-trained nerfacto renders
+    (scripts/calibrate_ncc.py, demo and street scenes): exact transforms 0.64-0.80, errors within 1 deg / 0.05
+    units >= 0.53, rotations >= 10 deg or translations >= 0.4 <= 0.20; scale errors alone barely move it."""
+    ncc_downsample: int = 4
+    """Block-average both images by this factor before the NCC (tolerates blur and sub-pixel misalignment)."""
+
+
+def validate_settings(config: RegistrationConfig) -> Intrinsics:
+    """Check the settings before anything is rendered; returns the render intrinsics."""
+    sc = config.sampling
+    numbers = {"--sampling.center": sc.center, "--sampling.radius": sc.radius, "--sampling.jitter-deg": sc.jitter_deg,
+               "--sampling.elevation-range-deg": sc.elevation_range_deg}  # fmt: skip
+    for option, value in numbers.items():
+        if not np.isfinite(np.asarray(value, dtype=np.float64)).all():
+            raise RegistrationError(f"{option} {value}: must be finite")
+    try:
+        intr = sc.intrinsics()
+        if sc.source in ("hemisphere", "both"):
+            sample_hemisphere_poses(
+                sc.num_poses, sc.radius, sc.elevation_range_deg, sc.center, jitter_deg=sc.jitter_deg, seed=sc.seed
+            )
+    except ValueError as e:
+        raise RegistrationError(f"bad pose sampling settings: {e}") from None
+    checks = [
+        (sc.source in ("hemisphere", "training", "both"), f"unknown pose source {sc.source!r}"),
+        (sc.max_training_poses >= 2, "--sampling.max-training-poses must be >= 2"),
+        (sc.size >= 16, "--sampling.size must be >= 16"),
+        (0.0 <= sc.min_view_accumulation <= 1.0, "--sampling.min-view-accumulation must be in [0, 1]"),
+        (config.self_check_views >= 0, "--self-check-views must be >= 0"),
+        (config.ncc_downsample >= 1, "--ncc-downsample must be >= 1"),
+        (config.min_registered_views >= 2, "--min-registered-views must be >= 2"),
+        (config.umeyama_max_error > 0, "--umeyama-max-error must be > 0"),
+        (config.sfm.exhaustive_max_images >= 2 and config.sfm.own_neighbors >= 1 and config.sfm.cross_views >= 1,
+         "--sfm.exhaustive-max-images, --sfm.own-neighbors and --sfm.cross-views must be positive"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise RegistrationError(message)
+    return intr
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Conventions shared by the steps' files
+
+
+def content_hash(obj) -> str:
+    """SHA-256 of ``obj`` as sorted JSON (cache keys of renders and SfM runs)."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def json_matrix(T: np.ndarray) -> list:
+    """A matrix as stored in JSON: float64, rounded to 12 digits, nested lists."""
+    return np.round(np.asarray(T, dtype=np.float64), 12).tolist()
+
+
+def json_float(x) -> float | None:
+    """JSON-safe float (NaN / inf become null)."""
+    x = float(x)
+    return x if math.isfinite(x) else None

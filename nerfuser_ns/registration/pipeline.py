@@ -1,0 +1,260 @@
+"""The registration pipeline: the automatic pose-source cascade, one attempt composed of the steps, and the
+nerfstudio-run entry point.
+
+One attempt (:func:`register_once`): render (:mod:`~nerfuser_ns.registration.render_cache`) -> SfM
+(:mod:`~nerfuser_ns.registration.sfm`) -> per-NeRF SIM(3) (:mod:`~nerfuser_ns.registration.estimate`) -> rigid-set
+bundle adjustment (:mod:`~nerfuser_ns.registration.refine`) -> cross-render self-check
+(:mod:`~nerfuser_ns.registration.self_check`) -> the record (:mod:`~nerfuser_ns.registration.record`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from nerfuser_ns import sim3
+from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.registration.config import (
+    CONSOLE,
+    DEFAULT_RENDER_SIZE,
+    RegistrationConfig,
+    RegistrationError,
+    RegistrationFailed,
+    validate_settings,
+)
+from nerfuser_ns.registration.estimate import estimate_transforms
+from nerfuser_ns.registration.record import build_result, work_dir_for, write_registration
+from nerfuser_ns.registration.refine import refine_transforms
+from nerfuser_ns.registration.render_cache import check_kept_views, render_key, render_views_cached
+from nerfuser_ns.registration.self_check import (
+    best_views,
+    covisibility,
+    cross_render_check,
+    failure_message,
+    spanning_pairs,
+)
+from nerfuser_ns.registration.sfm import check_registered_views, run_sfm
+from nerfuser_ns.renderers import NerfstudioRenderer, Renderer
+
+
+@dataclass
+class SamplingChoice:
+    """One pose-sampling setting to try, and why it was chosen."""
+
+    config: RegistrationConfig
+    """The registration settings with a concrete pose source and render camera."""
+    reason: str
+    """Why this source and camera (printed and recorded)."""
+
+
+def _training_cameras_available(renderer: Renderer) -> str | None:
+    """None when the renderer's training poses can be read, else the reason why not (one line)."""
+    try:
+        poses = renderer.training_poses()
+    except (RegistrationError, ValueError, OSError) as e:  # runs.RunLoadError is a ValueError
+        return str(e).splitlines()[0] if str(e) else type(e).__name__
+    return None if poses is not None and len(poses) > 0 else "it has no training poses"
+
+
+def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) -> list[SamplingChoice]:
+    """The pose-sampling settings to try, in order: the user's choice, or for ``source="auto"`` the training poses
+    (then training + hemisphere, then the hemisphere) when every run's dataset is readable, else the hemisphere.
+
+    The render camera defaults to the reference run's training cameras' horizontal field of view and aspect, with
+    ``size`` pixels along the longer side; :data:`DEFAULT_RENDER_SIZE` when they are unknown.
+    """
+    sc = config.sampling
+    k = len(renderers)
+    missing = {}
+    if sc.source == "auto" or sc.width is None or sc.height is None or sc.fov_deg is None:
+        for i, r in enumerate(renderers):
+            why = _training_cameras_available(r)
+            if why is not None:
+                missing[i] = why
+    width, height, fov = sc.width, sc.height, sc.fov_deg
+    camera_note = "render size and field of view as given"
+    if width is None or height is None or fov is None:
+        ref = config.reference % k if -k <= config.reference < k else 0
+        intr = None if ref in missing else getattr(renderers[ref], "training_intrinsics", lambda: None)()
+        if intr is not None:
+            factor = sc.size / max(intr.width, intr.height)
+            auto_w, auto_h = max(8, round(intr.width * factor)), max(8, round(intr.height * factor))
+            auto_fov = math.degrees(2 * math.atan2(intr.width / 2, intr.fx))
+            camera_note = f"render camera from {renderers[ref].name}'s training cameras"
+        else:
+            auto_w, auto_h, auto_fov = DEFAULT_RENDER_SIZE
+            camera_note = "render camera {}x{} at {:g} deg (the reference run's training cameras are unknown)".format(
+                *DEFAULT_RENDER_SIZE)
+        width = auto_w if width is None else width
+        height = auto_h if height is None else height
+        fov = auto_fov if fov is None else fov
+    if sc.source != "auto":
+        sources = [(sc.source, "as given")]
+    elif missing:
+        i, why = next(iter(missing.items()))
+        sources = [("hemisphere", f"training poses unavailable ({renderers[i].name}: {why})")]
+    else:
+        sources = [("training", "every run's dataset is readable"),
+                   ("both", "the training poses alone did not register"),
+                   ("hemisphere", "neither the training poses nor training + hemisphere registered")]  # fmt: skip
+    out = []
+    for source, why in sources:
+        sampling = replace(sc, source=source, width=int(width), height=int(height), fov_deg=float(fov))
+        out.append(SamplingChoice(replace(config, sampling=sampling), f"{why}; {camera_note}"))
+    return out
+
+
+def register(
+    renderers: Sequence[Renderer],
+    config: RegistrationConfig | None = None,
+    work_dir: Path | str = Path("nerfuser_register_work"),
+    console: Console = CONSOLE,
+) -> dict:
+    """Register N >= 2 renderers; returns the registration record (what :func:`write_registration` stores).
+
+    With ``sampling.source="auto"`` (the default) the pose sources of :func:`resolve_sampling` are tried in order until
+    one registers; each choice and each fallback is printed. Raises :class:`RegistrationError` (one line, naming the
+    NeRF) when the result cannot be trusted.
+    """
+    config = config or RegistrationConfig()
+    if len(renderers) < 2:
+        raise RegistrationError(f"registration needs at least 2 NeRFs, got {len(renderers)}")
+    choices = resolve_sampling(renderers, config)
+    for choice in choices:
+        validate_settings(choice.config)
+    tried = []
+    for n, choice in enumerate(choices):
+        sc = choice.config.sampling
+        console.print(f"pose sampling: [bold]{sc.source}[/] ({choice.reason}), renders {sc.width}x{sc.height} at "
+                      f"{sc.fov_deg:.1f} deg")  # fmt: skip
+        try:
+            record = register_once(renderers, choice.config, work_dir, console)
+        except RegistrationError as e:
+            if n + 1 == len(choices):
+                raise
+            reason = str(e).splitlines()[0]
+            tried.append({"source": sc.source, "error": reason})
+            console.print(f"[yellow]{sc.source} poses did not register: {reason}[/]")
+            continue
+        record["sampling_choice"] = {"requested": config.sampling.source, "source": sc.source,
+                                     "reason": choice.reason, "tried_before": tried}  # fmt: skip
+        return record
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _check_inputs(renderers: Sequence[Renderer], config: RegistrationConfig) -> tuple[int, int, Intrinsics]:
+    """Before anything is rendered: the NeRFs and settings make sense. Returns the reference index, the views each
+    NeRF needs in the SfM model, and the render intrinsics."""
+    k = len(renderers)
+    names = [r.name for r in renderers]
+    if k < 2:
+        raise RegistrationError(f"registration needs at least 2 NeRFs, got {k}")
+    if not -k <= config.reference < k:
+        raise RegistrationError(f"reference index {config.reference} out of range for {k} NeRFs")
+    if config.estimator not in ("nerfuser", "nerfuser-median", "umeyama-ransac"):
+        raise RegistrationError(f"unknown estimator {config.estimator!r}")
+    keys = [render_key(r, config.sampling) for r in renderers]
+    for a in range(k):
+        for b in range(a):
+            if keys[a] == keys[b]:
+                raise RegistrationError(f"{names[a]}: passed twice (same run as {names[b]}); pass distinct runs")
+    min_views = max(config.min_registered_views, 3 if config.estimator == "umeyama-ransac" else 2)
+    return config.reference % k, min_views, validate_settings(config)
+
+
+def register_once(
+    renderers: Sequence[Renderer],
+    config: RegistrationConfig,
+    work_dir: Path | str,
+    console: Console,
+) -> dict:
+    """One registration with concrete pose-sampling settings (see :func:`register`); returns the record.
+
+    Raises :class:`RegistrationFailed` (with the record) when the self-check rejects the solution.
+    """
+    work_dir = Path(work_dir)
+    ref, min_views, intr = _check_inputs(renderers, config)
+    timings: dict[str, float] = {}
+
+    # 1. Render (or reuse the renders of a previous run).
+    t0 = time.perf_counter()
+    views = [render_views_cached(r, config.sampling, work_dir / "renders", console) for r in renderers]
+    timings["render"] = time.perf_counter() - t0
+    check_kept_views(views, min_views, config.sampling)
+
+    # 2. One SfM over the union (reused SfM steps take no time in this run).
+    sfm = run_sfm(views, intr, config.sfm, work_dir, console)
+    for step in ("features", "matching", "mapping"):
+        timings[step] = 0.0 if sfm.reused else sfm.timings.get(step, 0.0)
+    check_registered_views(sfm, views, min_views)
+
+    # 3. Per NeRF: its SIM(3) into the SfM frame C, then into the reference frame; 4. refined.
+    t0 = time.perf_counter()
+    estimates = estimate_transforms(views, sfm, config)
+    T_to_C = np.stack([e.estimate.T for e in estimates])
+    T_to_ref = sim3.to_reference_frame(T_to_C, ref)
+    refinement = None
+    if config.refine:
+        with console.status("refining the transforms (rigid-set bundle adjustment)"):
+            T_to_ref, refinement = refine_transforms(views, sfm, T_to_C, ref, intr, config.refine_loss_scale_px)
+        T_to_C = T_to_C[ref] @ T_to_ref
+    timings["solve"] = time.perf_counter() - t0
+
+    # 5. Overlap between NeRFs (3D points seen by both) and the cross-render self-check.
+    overlap = covisibility(views, sfm)
+    checked_pairs = spanning_pairs(overlap) if config.self_check_views > 0 else []
+    t0 = time.perf_counter()
+    with console.status("self-check: cross-rendering NeRF pairs"):
+        checks = cross_render_check(renderers, views, T_to_ref, checked_pairs, intr, config,
+                                    best_views(views, sfm, checked_pairs))  # fmt: skip
+    timings["self_check"] = time.perf_counter() - t0
+
+    # 6. The record; fail clearly when the self-check says the SfM merged the wrong things.
+    record = build_result(
+        renderers=renderers, views=views, sfm=sfm, estimates=estimates, T_to_ref=T_to_ref, T_to_C=T_to_C,
+        refinement=refinement, overlap=overlap, checks=checks, config=config, intrinsics=intr, timings=timings,
+    ).to_record()
+    failure = failure_message(checks, [r.name for r in renderers], config)
+    if failure is not None:
+        raise RegistrationFailed(failure, record)
+    return record
+
+
+def register_runs(
+    config_paths: Sequence[Path | str],
+    output: Path | str,
+    config: RegistrationConfig | None = None,
+    work_dir: Path | str | None = None,
+    names: Sequence[str] | None = None,
+    device: str = "cpu",
+    console: Console = CONSOLE,
+    data_overrides: Sequence[Path | None] | None = None,
+) -> dict:
+    """Register trained nerfstudio runs from their config.yml files and write the registration file at ``output``.
+
+    ``work_dir`` defaults to ``<output>_work`` (renders and SfM files, reused by later calls). ``data_overrides[i]``
+    is run i's dataset folder where its config's path no longer holds it (training poses are read from it). Raises
+    :class:`RegistrationError` or ``runs.RunLoadError`` (one line) on bad input; nothing is written then.
+    """
+    output = Path(output)
+    if names is not None and len(names) != len(config_paths):
+        raise RegistrationError(f"{len(names)} names for {len(config_paths)} runs")
+    if data_overrides is not None and len(data_overrides) != len(config_paths):
+        raise RegistrationError(f"{len(data_overrides)} dataset folders for {len(config_paths)} runs")
+    renderers = [
+        NerfstudioRenderer(
+            c, device=device, name=None if names is None else names[i],
+            data_override=None if data_overrides is None else data_overrides[i],
+        )
+        for i, c in enumerate(config_paths)
+    ]  # fmt: skip
+    work_dir = Path(work_dir) if work_dir is not None else work_dir_for(output)
+    record = register(renderers, config, work_dir, console=console)
+    write_registration(record, output)
+    return record

@@ -1,0 +1,519 @@
+"""The registration file: the one module that builds, writes and reads it, and the work-folder convention.
+
+``ns-nerfuser-register`` writes a JSON record (``kind: nerfuser_registration``): per NeRF its SIM(3)
+``T_to_reference`` (``p_ref = T @ [p, 1]``, also stored as ``transform``, the key of the minimal hand-written form),
+diagnostics, the pairs and their self-check, the SfM summary, the settings and timings. :class:`RegistrationResult`
+is that record typed (one field per value; :meth:`~RegistrationResult.to_record` writes the keys, aliases included).
+The fusion reads either form through :func:`iter_registered_nerfs` (:mod:`nerfuser_ns.spec` then checks the runs).
+
+Renders and SfM files go to a work folder, by default ``<output stem>_work`` beside the registration file
+(:func:`work_dir_for`); :func:`render_folders` and :func:`read_render_poses` read the views each NeRF was rendered
+from, for display.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from jaxtyping import Bool, Float
+
+from nerfuser_ns import sim3
+from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.registration.config import FORMAT_VERSION, RegistrationConfig, RegistrationError, json_float
+from nerfuser_ns.registration.estimate import NerfEstimate
+from nerfuser_ns.registration.render_cache import ViewSet, load_render_meta
+from nerfuser_ns.registration.self_check import CrossRenderCheck, passed
+from nerfuser_ns.registration.sfm import SfMResult
+from nerfuser_ns.renderers import Renderer
+
+KIND = "nerfuser_registration"
+"""``kind`` of a registration record (a minimal hand-written file may omit it)."""
+CONVENTIONS = {
+    "sim3": "T = [[s R, t], [0, 0, 0, 1]]; T_to_reference maps points of the NeRF's frame into the "
+            "reference NeRF's frame: p_ref = T @ [p, 1]",
+    "poses": "camera-to-world, OpenGL camera axes (nerfstudio)",
+    "pairs": "T_j_to_i maps NeRF j's points into NeRF i's frame",
+}
+WORK_DIR_SUFFIX = "_work"
+
+
+def work_dir_for(output: Path | str) -> Path:
+    """The default work folder of a registration written to ``output``: ``<output stem>_work`` beside it."""
+    output = Path(output)
+    return output.with_name(output.stem + WORK_DIR_SUFFIX)
+
+
+def _matrix(T) -> Float[np.ndarray, "4 4"]:
+    """A stored matrix: float64, rounded to 12 digits (as written)."""
+    return np.round(np.asarray(T, dtype=np.float64), 12)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The typed result
+
+
+@dataclass
+class ViewCounts:
+    """One NeRF's views: rendered, kept for the SfM (enough accumulation), registered in its largest model."""
+
+    rendered: int
+    kept: int
+    registered: int
+    sources: dict[str, int]
+    """Rendered views per pose source ("hemisphere", "training")."""
+
+
+@dataclass
+class Residuals:
+    """The SfM's cameras of one NeRF against its final transform (rotation in degrees, centres in its units)."""
+
+    rotation_deg_median: float | None
+    rotation_deg_max: float | None
+    centre_median: float | None
+    centre_max: float | None
+
+    def to_record(self) -> dict:
+        return {**asdict(self), "centre_units": "this NeRF's units",
+                "of": "the SfM's cameras against the final transform"}  # fmt: skip
+
+
+@dataclass
+class NerfResult:
+    """One registered NeRF."""
+
+    name: str
+    config: str | None
+    """Its run's config.yml (absolute), None for renderers that are not nerfstudio runs."""
+    checkpoint: dict | None
+    """Which weights were registered: fusing them after a retraining is refused (:mod:`nerfuser_ns.spec`)."""
+    T_to_reference: Float[np.ndarray, "4 4"]
+    """``p_reference = T @ [p_nerf, 1]`` (written twice: as ``T_to_reference`` and as its ``transform`` alias)."""
+    scale_to_reference: float
+    T_to_sfm: Float[np.ndarray, "4 4"]
+    views: ViewCounts
+    render_folder: str
+    renders_reused: bool
+    estimator: str
+    refinement_change: dict | None
+    """How far the refinement moved the estimator's transform (r_deg, t, s); None when not refined."""
+    cameras_used: int
+    scale_to_sfm: float
+    scale_spread: float
+    scale_outlier_fraction: float
+    residuals: Residuals
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
+
+    def to_record(self) -> dict:
+        return {
+            "name": self.name,
+            "config": self.config,
+            "checkpoint": self.checkpoint,
+            "T_to_reference": self.T_to_reference.tolist(),
+            "transform": self.T_to_reference.tolist(),  # alias read by the fusion (p_reference = T @ [p_nerf, 1])
+            "scale_to_reference": self.scale_to_reference,
+            "T_to_sfm": self.T_to_sfm.tolist(),
+            "views": asdict(self.views),
+            "render_folder": self.render_folder,
+            "renders_reused": self.renders_reused,
+            "estimator": self.estimator,
+            "refinement_change": self.refinement_change,
+            "cameras_used": self.cameras_used,
+            "scale_to_sfm": self.scale_to_sfm,
+            "scale_spread": self.scale_spread,
+            "scale_outlier_fraction": self.scale_outlier_fraction,
+            "residuals": self.residuals.to_record(),
+            **self.extra,
+        }
+
+    @classmethod
+    def from_record(cls, n: dict) -> NerfResult:
+        known = {f for f in cls.__dataclass_fields__ if f != "extra"} | {"transform"}
+        residuals = {k: n["residuals"][k] for k in Residuals.__dataclass_fields__}
+        return cls(**{
+            **{k: n[k] for k in known - {"transform"}},
+            "T_to_reference": _matrix(n["T_to_reference"]), "T_to_sfm": _matrix(n["T_to_sfm"]),
+            "views": ViewCounts(**n["views"]), "residuals": Residuals(**residuals),
+            "extra": {k: v for k, v in n.items() if k not in known},
+        })  # fmt: skip
+
+
+@dataclass
+class PairCheck:
+    """The cross-render self-check of one NeRF pair."""
+
+    ncc: float | None
+    """The worse direction's NCC (null: a direction saw nothing in common)."""
+    ncc_i_in_j: float | None
+    ncc_j_in_i: float | None
+    views_per_direction: int
+    threshold: float
+    passed: bool
+
+
+@dataclass
+class PairResult:
+    """One NeRF pair (i < j): its relative transform and overlap, and its self-check when it was checked."""
+
+    i: int
+    j: int
+    T_j_to_i: Float[np.ndarray, "4 4"]
+    covisible_points: int
+    self_check: PairCheck | None
+
+    def to_record(self, names: Sequence[str]) -> dict:
+        return {"i": self.i, "j": self.j, "names": [names[self.i], names[self.j]], "T_j_to_i": self.T_j_to_i.tolist(),
+                "covisible_points": self.covisible_points,
+                "self_check": None if self.self_check is None else asdict(self.self_check)}  # fmt: skip
+
+    @classmethod
+    def from_record(cls, p: dict) -> PairResult:
+        check = p["self_check"]
+        return cls(p["i"], p["j"], _matrix(p["T_j_to_i"]), p["covisible_points"],
+                   None if check is None else PairCheck(**check))  # fmt: skip
+
+
+@dataclass
+class SfMSummary:
+    """The SfM run: images, how many registered, matching scheme, per-model view counts, points, reprojection."""
+
+    images: int
+    registered: int
+    matching: str
+    models: list[list[int]]
+    points3D: int
+    mean_reprojection_error_px: float | None
+    reused: bool
+    intrinsics: dict
+    """The render camera (fx, fy, cx, cy, width, height)."""
+
+
+@dataclass
+class RegistrationResult:
+    """A registration, typed: :meth:`to_record` is the JSON record :func:`write_registration` stores."""
+
+    created: str
+    """UTC time, ISO 8601."""
+    reference: int
+    """Index of the NeRF whose frame is the common frame."""
+    nerfs: list[NerfResult]
+    pairs: list[PairResult]
+    sfm: SfMSummary
+    refinement: dict | None
+    """The rigid-set bundle adjustment's summary (:func:`nerfuser_ns.registration.refine.refine_transforms`)."""
+    settings: dict
+    """The :class:`RegistrationConfig` used, as a dict."""
+    timings_s: dict[str, float]
+    """Seconds per step in this run (reused renders and SfM cost nearly nothing)."""
+    compute_timings_s: dict[str, float | None]
+    """Seconds per step as computed (reused renders and SfM report what they took when made)."""
+    sampling_choice: dict | None = None
+    """The automatic pose-source choice (``register`` adds it)."""
+    format_version: int = FORMAT_VERSION
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
+
+    def to_record(self) -> dict:
+        """The JSON record (key order as written since format version 1)."""
+        names = [n.name for n in self.nerfs]
+        record = {
+            "format_version": self.format_version,
+            "kind": KIND,
+            "created": self.created,
+            "reference": {"index": self.reference, "name": names[self.reference]},
+            "conventions": dict(CONVENTIONS),
+            "nerfs": [n.to_record() for n in self.nerfs],
+            "pairs": [p.to_record(names) for p in self.pairs],
+            "sfm": asdict(self.sfm),
+            "refinement": self.refinement,
+            "settings": self.settings,
+            "timings_s": self.timings_s,
+            "compute_timings_s": self.compute_timings_s,
+            "reused": {"renders": [n.renders_reused for n in self.nerfs], "sfm": self.sfm.reused},
+        }
+        if self.sampling_choice is not None:
+            record["sampling_choice"] = self.sampling_choice
+        return {**record, **self.extra}
+
+    @classmethod
+    def from_record(cls, record: dict) -> RegistrationResult:
+        """The typed result of a record of this format (as :func:`read_registration` returns it); unknown keys are
+        kept in ``extra``. Raises :class:`RegistrationError` when a key is missing or malformed."""
+        known = {"format_version", "kind", "created", "reference", "conventions", "nerfs", "pairs", "sfm",
+                 "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice"}  # fmt: skip
+        try:
+            if record.get("kind") != KIND:
+                raise ValueError(f"kind {record.get('kind')!r} is not {KIND!r}")
+            return cls(
+                created=record["created"], reference=record["reference"]["index"],
+                nerfs=[NerfResult.from_record(n) for n in record["nerfs"]],
+                pairs=[PairResult.from_record(p) for p in record["pairs"]], sfm=SfMSummary(**record["sfm"]),
+                refinement=record["refinement"], settings=record["settings"], timings_s=record["timings_s"],
+                compute_timings_s=record["compute_timings_s"], sampling_choice=record.get("sampling_choice"),
+                format_version=record["format_version"], extra={k: v for k, v in record.items() if k not in known},
+            )  # fmt: skip
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise RegistrationError(f"not a registration record of format {FORMAT_VERSION} "
+                                    f"({type(e).__name__}: {e})") from None  # fmt: skip
+
+
+def build_result(
+    *,
+    renderers: Sequence[Renderer],
+    views: Sequence[ViewSet],
+    sfm: SfMResult,
+    estimates: Sequence[NerfEstimate],
+    T_to_ref: Float[np.ndarray, "k 4 4"],
+    T_to_C: Float[np.ndarray, "k 4 4"],
+    refinement: dict | None,
+    overlap: np.ndarray,
+    checks: Sequence[CrossRenderCheck],
+    config: RegistrationConfig,
+    intrinsics: Intrinsics,
+    timings: dict[str, float],
+) -> RegistrationResult:
+    """The result of the steps' outputs: ``T_to_C`` / ``T_to_ref`` are the final transforms (refined when refined),
+    ``timings`` this run's seconds per step (render, features, matching, mapping, solve, self_check)."""
+    k = len(renderers)
+    check_of = {(c.i, c.j): c for c in checks}
+    pairs = []
+    for i in range(k):
+        for j in range(i + 1, k):
+            c = check_of.get((i, j))
+            pairs.append(PairResult(
+                i, j, _matrix(sim3.relative_sim3(T_to_ref[i], T_to_ref[j])), int(overlap[i, j]),
+                None if c is None else PairCheck(
+                    json_float(c.score), json_float(c.ncc_i_in_j), json_float(c.ncc_j_in_i), c.views,
+                    config.ncc_threshold, passed(c, config),
+                ),
+            ))  # fmt: skip
+    nerfs = []
+    for i, (r, vs, ne) in enumerate(zip(renderers, views, estimates, strict=True)):
+        est = ne.estimate
+        registered = sum(1 for n, kept in zip(vs.image_names, vs.kept, strict=True) if kept and n in sfm.c2w)
+        # SfM cameras against the final transform (the refined one, when refined).
+        rot, cen = sim3.pose_residuals(T_to_C[i], vs.c2w[est.used], ne.G_sfm[est.used])
+        config_path = getattr(r, "config_path", None)
+        nerfs.append(NerfResult(
+            name=r.name,
+            config=None if config_path is None else str(Path(config_path).absolute()),
+            checkpoint=r.checkpoint_identity() if hasattr(r, "checkpoint_identity") else None,
+            T_to_reference=_matrix(T_to_ref[i]),
+            scale_to_reference=float(sim3.decompose_sim3(T_to_ref[i])[2]),
+            T_to_sfm=_matrix(T_to_C[i]),
+            views=ViewCounts(len(vs.c2w), int(vs.kept.sum()), registered,
+                             {s: vs.sources.count(s) for s in sorted(set(vs.sources))}),
+            render_folder=str(vs.folder),
+            renders_reused=vs.reused,
+            estimator=est.method,
+            refinement_change=refinement["change"][i] if refinement and refinement["used"] else None,
+            cameras_used=est.num_cameras,
+            scale_to_sfm=est.scale,
+            scale_spread=est.scale_spread,
+            scale_outlier_fraction=est.scale_outlier_fraction,
+            residuals=Residuals(json_float(np.median(rot)), json_float(np.max(rot)), json_float(np.median(cen)),
+                                json_float(np.max(cen))),
+        ))  # fmt: skip
+    # What each step costs without the work folder (reused renders and SfM report the time they took when made).
+    render_s = [vs.render_seconds for vs in views]
+    compute = {"render": None if None in render_s else float(sum(render_s))}
+    compute.update({step: sfm.timings.get(step) for step in ("features", "matching", "mapping")})
+    compute.update({"solve": timings["solve"], "self_check": timings["self_check"]})
+    return RegistrationResult(
+        created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        reference=config.reference % k,
+        nerfs=nerfs,
+        pairs=pairs,
+        sfm=SfMSummary(sfm.num_images, len(sfm.c2w), sfm.matching, sfm.model_counts, sfm.num_points3D,
+                       json_float(sfm.mean_reprojection_error), sfm.reused, asdict(intrinsics)),
+        refinement=refinement,
+        settings=asdict(config),
+        timings_s={step: round(s, 3) for step, s in timings.items()},
+        compute_timings_s={step: None if s is None else round(s, 3) for step, s in compute.items()},
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The file
+
+
+def _load_json(path: Path) -> Any:
+    """The one JSON parse of a registration file (raises ``OSError`` / ``ValueError``)."""
+    return json.loads(Path(path).read_text())
+
+
+def write_registration(record: dict, path: Path | str) -> Path:
+    """Write the registration record as JSON, atomically (temp file + rename)."""
+    path = Path(path)
+    write_text_atomic(path, json.dumps(record, indent=2) + "\n")
+    return path
+
+
+def read_registration(path: Path | str) -> dict:
+    """Read a registration file; ``T_to_reference`` of each NeRF comes back as a [4, 4] array."""
+    path = Path(path)
+    try:
+        record = _load_json(path)
+        if record.get("kind") != KIND:
+            raise ValueError("not a registration file")
+        for n in record["nerfs"]:
+            n["T_to_reference"] = np.asarray(n["T_to_reference"], dtype=np.float64)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise RegistrationError(f"{path}: not a readable registration file ({type(e).__name__}: {e})") from None
+    return record
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The fusion's view: each NeRF's run and transform, from a record or the minimal hand-written form
+
+
+@dataclass(frozen=True)
+class NerfEntry:
+    """One NeRF of the fusion: its run and its place in the common frame."""
+
+    name: str
+    """Unique name (share maps and logs use it)."""
+    config_path: Path
+    """The run's config.yml (absolute)."""
+    nerf_to_common: Float[np.ndarray, "4 4"] = field(compare=False)
+    """SIM(3) ``T`` with ``p_common = T @ [p_nerf, 1]`` (float64)."""
+
+    @property
+    def scale(self) -> float:
+        """``s`` of ``T``: a length L in NeRF units is ``s * L`` in common units."""
+        return float(np.cbrt(np.linalg.det(self.nerf_to_common[:3, :3])))
+
+    @property
+    def origin(self) -> Float[np.ndarray, "3"]:
+        """The NeRF's origin in the common frame."""
+        return self.nerf_to_common[:3, 3].copy()
+
+
+class RegistrationFileError(RegistrationError):
+    """A registration file the fusion cannot read; the message names the file (and the entry)."""
+
+
+@dataclass(frozen=True)
+class RegisteredNerf:
+    """One ``nerfs`` entry of a registration file as stored (the fusion checks the run and the transform)."""
+
+    index: int
+    name: str | None
+    """As stored (None or empty: unnamed)."""
+    config: Any
+    """The run's config.yml as stored (None: the entry registers no nerfstudio run)."""
+    transform_key: str
+    """``T_to_reference`` (what ``ns-nerfuser-register`` writes, preferred) or ``transform`` (the minimal form)."""
+    transform: Any
+    """The stored 4x4 (or 3x4) SIM(3) into the common frame."""
+    checkpoint: Any = None
+    """The registered weights (file, step, sha256), when recorded."""
+
+
+def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
+    """The NeRFs of a registration file, in order: a record (``kind: nerfuser_registration``) or the minimal
+    ``{"nerfs": [{name, config, transform}]}``.
+
+    Raises :class:`RegistrationFileError` (one line naming the file and the entry) for an unreadable file, another
+    kind, no ``nerfs`` list, or an entry without ``config`` and a transform, when iteration reaches it.
+    """
+    path = Path(path)
+    try:
+        data = _load_json(path)
+    except FileNotFoundError:
+        raise RegistrationFileError(f"{path}: no such registration file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise RegistrationFileError(f"{path}: not a readable JSON registration file ({e})") from None
+    if not isinstance(data, dict):
+        raise RegistrationFileError(f"{path}: expected a JSON object at the top level")
+    if data.get("kind", KIND) != KIND:
+        raise RegistrationFileError(f"{path}: not a registration file (kind {data.get('kind')!r})")
+    nerfs = data.get("nerfs")
+    if not isinstance(nerfs, list) or not nerfs:
+        raise RegistrationFileError(f"{path}: expected a non-empty list 'nerfs' of {{name, config, transform}}")
+    for i, item in enumerate(nerfs):
+        where = f"{path}: nerfs[{i}]"
+        if not isinstance(item, dict):
+            raise RegistrationFileError(f"{where}: expected an object with name, config, transform")
+        key = "T_to_reference" if "T_to_reference" in item else "transform"
+        missing = [k for k in ("config", key) if k not in item]
+        if missing:
+            raise RegistrationFileError(f"{where}: missing {', '.join(missing)}")
+        yield RegisteredNerf(i, item.get("name"), item["config"], key, item[key], item.get("checkpoint"))
+
+
+def write_minimal_registration(nerfs: Sequence[NerfEntry], path: Path | str) -> Path:
+    """Write the minimal registration file ``{"nerfs": [{name, config, transform}]}`` (config paths as given),
+    atomically."""
+    data = {
+        "nerfs": [
+            {"name": n.name, "config": str(n.config_path), "transform": np.asarray(n.nerf_to_common).tolist()}
+            for n in nerfs
+        ]
+    }
+    return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The views each NeRF was rendered from (for display)
+
+
+class RenderFolder(NamedTuple):
+    """Where one NeRF of a registration file was rendered."""
+
+    name: str
+    config: Path | None
+    folder: Path | None
+    """Its render folder (None when the file names none, e.g. the minimal form)."""
+
+
+def render_folders(path: Path | str) -> list[RenderFolder]:
+    """Per NeRF of a registration file, its name, run and render folder. A folder that is gone is looked up in the
+    work folder beside the file (:func:`work_dir_for`: the work folder moved with it). Raises ``OSError``,
+    ``ValueError``, ``TypeError`` or ``AttributeError`` on a malformed file."""
+    path = Path(path)
+    data = _load_json(path)
+    out = []
+    for item in data.get("nerfs", []):
+        folder = item.get("render_folder")
+        config = item.get("config")
+        if folder is not None:
+            folder = Path(folder)
+            if not folder.is_absolute():
+                folder = path.parent / folder
+            if not folder.is_dir():
+                # The work folder moved with the registration file: <stem>_work/renders/<key> beside it.
+                moved = work_dir_for(path) / "renders" / folder.name
+                folder = moved if moved.is_dir() else folder
+        out.append(RenderFolder(str(item.get("name")), None if config is None else Path(config), folder))
+    return out
+
+
+class RenderPoses(NamedTuple):
+    """The views of one render folder, in the NeRF's own frame."""
+
+    c2w: Float[np.ndarray, "n 4 4"]
+    kept: Bool[np.ndarray, " n"]
+    """Whether the SfM used the view (enough accumulation)."""
+    intrinsics: dict
+    """The render camera: fx, fy, cx, cy, width, height."""
+
+
+def read_render_poses(folder: Path | str) -> RenderPoses:
+    """The poses a registration rendered one NeRF from (its render folder's ``poses.json``).
+
+    Raises ``FileNotFoundError`` when it is gone; ``OSError``, ``ValueError``, ``KeyError`` or ``TypeError`` when it
+    is unreadable.
+    """
+    meta = load_render_meta(folder)
+    views = meta["views"]
+    c2w = np.array([v["c2w"] for v in views], dtype=np.float64).reshape(-1, 4, 4)
+    kept = np.array([bool(v.get("kept", True)) for v in views], dtype=bool)
+    return RenderPoses(c2w, kept, meta["intrinsics"])

@@ -1,0 +1,234 @@
+"""Registration step 1: sample camera poses in each NeRF's own frame and render them, cached in the work folder.
+
+Each NeRF's renders go to ``<work_dir>/renders/<key>`` (``images/*.png``, ``accumulation.npz``, ``poses.json``), the
+key a hash of the renderer's own cache key and the sampling settings: a later run with the same inputs reuses them,
+and a damaged folder is rendered again.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+import zipfile
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from jaxtyping import Float
+from PIL import Image
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from nerfuser_ns.registration.config import (
+    CONSOLE,
+    FORMAT_VERSION,
+    SUGGESTION,
+    PoseSamplingConfig,
+    RegistrationError,
+    content_hash,
+    json_matrix,
+)
+from nerfuser_ns.renderers import Renderer
+from nerfuser_ns.sampling import sample_hemisphere_poses
+
+POSES_FILE = "poses.json"
+"""The render folder's index: per view its pose, source, mean accumulation and whether the SfM uses it."""
+
+
+def to_uint8(rgb: np.ndarray) -> np.ndarray:
+    """An RGB render in [0, 1] as the 8-bit image stored (and seen by the SfM)."""
+    return np.round(np.nan_to_num(rgb, nan=0.0).clip(0, 1) * 255.0).astype(np.uint8)
+
+
+def _progress(console: Console) -> Progress:
+    cols = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    return Progress(*cols, console=console, transient=True)
+
+
+def sample_poses(renderer: Renderer, cfg: PoseSamplingConfig) -> tuple[Float[np.ndarray, "n 4 4"], list[str]]:
+    """Poses to render for one NeRF, in its own frame, and where each came from ("hemisphere" / "training")."""
+    poses, sources = [], []
+    if cfg.source in ("hemisphere", "both"):
+        try:
+            hemi = sample_hemisphere_poses(
+                cfg.num_poses, cfg.radius, cfg.elevation_range_deg, cfg.center, jitter_deg=cfg.jitter_deg,
+                seed=cfg.seed,
+            )
+        except ValueError as e:
+            raise RegistrationError(f"bad pose sampling settings: {e}") from None
+        poses.append(hemi)
+        sources += ["hemisphere"] * len(hemi)
+    if cfg.source in ("training", "both"):
+        train = renderer.training_poses()
+        if train is None or len(train) == 0:
+            raise RegistrationError(f"{renderer.name}: has no training poses; use --sampling.source hemisphere")
+        train = np.asarray(train, dtype=np.float64)
+        if not np.isfinite(train).all():
+            raise RegistrationError(f"{renderer.name}: its training poses contain NaN or inf")
+        if len(train) > cfg.max_training_poses:
+            if cfg.seed == 0:
+                pick = np.round(np.linspace(0, len(train) - 1, cfg.max_training_poses)).astype(int)
+            else:
+                rng = np.random.default_rng(cfg.seed)
+                pick = np.sort(rng.choice(len(train), cfg.max_training_poses, replace=False))
+            train = train[pick]
+        poses.append(train)
+        sources += ["training"] * len(train)
+    if cfg.source not in ("hemisphere", "training", "both"):
+        raise RegistrationError(f"unknown pose source {cfg.source!r}; use hemisphere, training or both")
+    return np.concatenate(poses), sources
+
+
+@dataclass
+class ViewSet:
+    """One NeRF's rendered views, as stored in its render folder."""
+
+    name: str
+    folder: Path
+    """``<work_dir>/renders/<key>``: images/*.png, accumulation.npz, poses.json."""
+    c2w: Float[np.ndarray, "n 4 4"]
+    """Poses in the NeRF's own frame."""
+    sources: list[str]
+    mean_accumulation: Float[np.ndarray, " n"]
+    kept: np.ndarray
+    """Views that go into the SfM (enough accumulation)."""
+    reused: bool = False
+    """Whether the renders came from the cache."""
+    render_seconds: float | None = 0.0
+    """Seconds the renders took when they were made (None for cache folders written before this was stored)."""
+
+    @property
+    def image_names(self) -> list[str]:
+        """Names relative to ``<work_dir>/renders`` (what the SfM database stores)."""
+        return [f"{self.folder.name}/images/{k:05d}.png" for k in range(len(self.c2w))]
+
+    def load_rgb(self, k: int) -> np.ndarray:
+        return np.asarray(Image.open(self.folder / "images" / f"{k:05d}.png").convert("RGB"), dtype=np.float32) / 255
+
+    def load_accumulation(self) -> np.ndarray:
+        with np.load(self.folder / "accumulation.npz") as z:
+            return z["accumulation"].astype(np.float32)
+
+
+def render_key(renderer: Renderer, cfg: PoseSamplingConfig) -> str:
+    """Hash of everything the renders depend on: the renderer's own key (weights, mtime) and the sampling settings."""
+    return content_hash({"renderer": renderer.cache_key(), "sampling": asdict(cfg), "version": FORMAT_VERSION})[:16]
+
+
+def load_render_meta(folder: Path | str) -> dict[str, Any]:
+    """A render folder's ``poses.json`` as written by :func:`render_views_cached` (raises ``OSError`` or
+    ``ValueError`` when it is missing or not JSON)."""
+    return json.loads((Path(folder) / POSES_FILE).read_text())
+
+
+def _damage(views: ViewSet) -> str | None:
+    """What is wrong with a cached render folder (a missing or truncated image, unreadable accumulation), or None."""
+    try:
+        if views.load_accumulation().shape[0] != len(views.c2w):
+            return "accumulation.npz does not match poses.json"
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        return f"accumulation.npz: {type(e).__name__}"
+    for k in range(len(views.c2w)):
+        try:
+            with Image.open(views.folder / "images" / f"{k:05d}.png") as image:
+                image.load()  # decodes: a truncated file fails here
+        except (OSError, ValueError) as e:
+            return f"images/{k:05d}.png: {type(e).__name__}"
+    return None
+
+
+def render_views_cached(
+    renderer: Renderer, cfg: PoseSamplingConfig, renders_root: Path, console: Console = CONSOLE
+) -> ViewSet:
+    """Sample poses and render them into ``renders_root/<key>``, or reuse the folder a previous run left there."""
+    key = render_key(renderer, cfg)
+    folder = renders_root / key
+    if (folder / POSES_FILE).is_file():
+        try:
+            meta = load_render_meta(folder)
+            views = meta["views"]
+            cached = ViewSet(
+                renderer.name, folder, np.array([v["c2w"] for v in views], dtype=np.float64),
+                [v["source"] for v in views], np.array([v["mean_accumulation"] for v in views]),
+                np.array([v["kept"] for v in views], dtype=bool), reused=True,
+                render_seconds=meta.get("render_seconds"),
+            )
+            damage = _damage(cached)
+        except (KeyError, ValueError, TypeError) as e:
+            damage = f"unreadable poses.json ({type(e).__name__})"
+        if damage is None:
+            return cached
+        console.print(f"[yellow]{renderer.name}: cached renders in {folder} are damaged ({damage}); rendering again[/]")
+        shutil.rmtree(folder, ignore_errors=True)
+
+    c2w, sources = sample_poses(renderer, cfg)
+    intr = cfg.intrinsics()
+    renders_root.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{key}.tmp-", dir=renders_root))
+    start = time.perf_counter()
+    try:
+        (tmp / "images").mkdir()
+        accs = np.zeros((len(c2w), intr.height, intr.width), dtype=np.float16)
+        bad = []
+        with _progress(console) as bar:
+            task = bar.add_task(f"rendering {renderer.name}", total=len(c2w))
+            for k in range(len(c2w)):
+                out = renderer.render(c2w[k : k + 1], intr)
+                rgb = np.asarray(out.rgb[0], dtype=np.float32)
+                if rgb.shape != (intr.height, intr.width, 3):
+                    raise RegistrationError(
+                        f"{renderer.name}: rendered an image of shape {rgb.shape}, expected "
+                        f"{(intr.height, intr.width, 3)}"
+                    )
+                acc = np.ones(rgb.shape[:2], np.float32) if out.accumulation is None else out.accumulation[0]
+                if not (np.isfinite(rgb).all() and np.isfinite(acc).all()):
+                    bad.append(k)
+                Image.fromarray(to_uint8(rgb)).save(tmp / "images" / f"{k:05d}.png", compress_level=1)
+                accs[k] = np.nan_to_num(acc, nan=0.0).clip(0, 1)
+                bar.advance(task)
+        if bad:
+            raise RegistrationError(
+                f"{renderer.name}: rendered NaN or inf in {len(bad)} of {len(c2w)} views (a diverged run?); "
+                "check the run or pass another checkpoint"
+            )
+        np.savez_compressed(tmp / "accumulation.npz", accumulation=accs)
+        mean_acc = accs.astype(np.float32).mean(axis=(1, 2))
+        kept = mean_acc >= cfg.min_view_accumulation
+        meta = {
+            "renderer": renderer.name,
+            "render_seconds": time.perf_counter() - start,
+            "cache_key": renderer.cache_key(),
+            "sampling": asdict(cfg),
+            "intrinsics": asdict(intr),
+            "views": [
+                {"file": f"images/{k:05d}.png", "c2w": json_matrix(c2w[k]), "source": sources[k],
+                 "mean_accumulation": float(mean_acc[k]), "kept": bool(kept[k])}
+                for k in range(len(c2w))
+            ],
+        }
+        (tmp / POSES_FILE).write_text(json.dumps(meta, indent=1) + "\n")
+        os.chmod(tmp, 0o755)
+        if folder.exists():  # a damaged entry
+            shutil.rmtree(folder)
+        os.rename(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    # The poses as stored, so a first run and a rerun on the cache compute from identical numbers.
+    stored = np.array([v["c2w"] for v in meta["views"]], dtype=np.float64)
+    return ViewSet(renderer.name, folder, stored, sources, mean_acc, kept, False, meta["render_seconds"])
+
+
+def check_kept_views(views: Sequence[ViewSet], min_views: int, cfg: PoseSamplingConfig) -> None:
+    """Every NeRF needs ``min_views`` views that see enough for the SfM."""
+    for vs in views:
+        if vs.kept.sum() < min_views:
+            raise RegistrationError(
+                f"{vs.name}: only {int(vs.kept.sum())} of {len(vs.c2w)} rendered views see enough (mean accumulation "
+                f">= {cfg.min_view_accumulation}); aim the views at the content: {SUGGESTION}"
+            )

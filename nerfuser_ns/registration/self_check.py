@@ -1,0 +1,181 @@
+"""Registration step 5: check the solution by cross-rendering (SfM can merge unrelated content into one confident,
+wrong model).
+
+For a spanning tree of NeRF pairs (i, j) chosen by their SfM overlap: views of i are mapped through the solution
+into j's frame, rendered by j, and compared with i's own renders by normalised cross-correlation (and back).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from jaxtyping import Float
+
+from nerfuser_ns import sim3
+from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.registration.config import SUGGESTION, RegistrationConfig
+from nerfuser_ns.registration.render_cache import ViewSet, to_uint8
+from nerfuser_ns.registration.sfm import SfMResult
+from nerfuser_ns.renderers import Renderer
+
+
+def _gray_blocks(rgb: np.ndarray, factor: int) -> np.ndarray:
+    gray = rgb[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32) if rgb.ndim == 3 else rgb
+    return _blocks(gray, factor)
+
+
+def _blocks(x: np.ndarray, factor: int) -> np.ndarray:
+    if factor <= 1:
+        return x.astype(np.float64)
+    h, w = (x.shape[0] // factor) * factor, (x.shape[1] // factor) * factor
+    return x[:h, :w].reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3), dtype=np.float64)
+
+
+def ncc(
+    a: Float[np.ndarray, "h w 3"],
+    b: Float[np.ndarray, "h w 3"],
+    mask: np.ndarray | None = None,
+    downsample: int = 1,
+    min_fraction: float = 0.1,
+) -> float:
+    """Normalised cross-correlation of two images in grayscale over ``mask`` (after block-averaging).
+
+    NaN when fewer than ``min_fraction`` of the (downsampled) pixels are usable or either image is flat there.
+    """
+    ga, gb = _gray_blocks(a, downsample), _gray_blocks(b, downsample)
+    m = np.ones(ga.shape, bool) if mask is None else _blocks(mask.astype(np.float32), downsample) > 0.5
+    if m.sum() < max(4, min_fraction * m.size):
+        return float("nan")
+    x, y = ga[m] - ga[m].mean(), gb[m] - gb[m].mean()
+    denom = math.sqrt(float((x * x).sum() * (y * y).sum()))
+    return float((x * y).sum() / denom) if denom > 1e-12 else float("nan")
+
+
+@dataclass
+class CrossRenderCheck:
+    """Cross-render self-check of one NeRF pair: NCC of i's renders against j rendered at i's poses (and back)."""
+
+    i: int
+    j: int
+    ncc_i_in_j: float
+    """Median NCC: views of i mapped into j's frame, rendered by j, against i's own renders."""
+    ncc_j_in_i: float
+    """The same the other way round."""
+    views: int
+    """Views per direction."""
+
+    @property
+    def score(self) -> float:
+        """The worse direction (NaN if either saw nothing in common)."""
+        return float(min(self.ncc_i_in_j, self.ncc_j_in_i)) if np.isfinite([self.ncc_i_in_j, self.ncc_j_in_i]).all() \
+            else float("nan")
+
+
+def _cross_direction(
+    src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
+    cfg: RegistrationConfig, acc_src: np.ndarray,
+) -> float:
+    order = list(order)[: cfg.self_check_views]
+    if not order:
+        return float("nan")
+    poses = sim3.transform_poses(T_src_to_dst, src.c2w[order])
+    scores = []
+    for k, pose in zip(order, poses, strict=True):
+        out = dst.render(pose[None], intrinsics)
+        rgb = np.nan_to_num(np.asarray(out.rgb[0], dtype=np.float32))
+        # Compare what the PNG stored, as the SfM saw it.
+        rgb = to_uint8(rgb).astype(np.float32) / 255
+        mask = acc_src[k] >= 0.5
+        if out.accumulation is not None:
+            mask &= np.nan_to_num(out.accumulation[0]) >= 0.5
+        scores.append(ncc(src.load_rgb(k), rgb, mask, cfg.ncc_downsample))
+    scores = np.array(scores)
+    return float(np.median(scores[np.isfinite(scores)])) if np.isfinite(scores).any() else float("nan")
+
+
+def cross_render_check(
+    renderers: Sequence[Renderer],
+    views: Sequence[ViewSet],
+    T_to_ref: Float[np.ndarray, "k 4 4"],
+    pairs: Sequence[tuple[int, int]],
+    intrinsics: Intrinsics,
+    cfg: RegistrationConfig,
+    view_order: dict[tuple[int, int], Sequence[int]] | None = None,
+) -> list[CrossRenderCheck]:
+    """For each pair (i, j): map views of i through the estimate into j, render j there, NCC against i's renders.
+
+    ``view_order[(i, j)]`` lists i's views to use, best first (default: i's kept views, evenly spread).
+    """
+    checks = []
+    accs = [vs.load_accumulation() for vs in views]
+    for i, j in pairs:
+        T_ij = sim3.relative_sim3(T_to_ref[j], T_to_ref[i])  # i -> j
+        T_ji = sim3.invert_sim3(T_ij)
+
+        def order(a, b):
+            if view_order is not None and (a, b) in view_order:
+                return view_order[(a, b)]
+            idx = np.flatnonzero(views[a].kept)
+            return idx[np.round(np.linspace(0, len(idx) - 1, min(cfg.self_check_views, len(idx)))).astype(int)]
+
+        s_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), intrinsics, cfg, accs[i])
+        s_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), intrinsics, cfg, accs[j])
+        checks.append(CrossRenderCheck(i, j, s_ij, s_ji, cfg.self_check_views))
+    return checks
+
+
+def covisibility(views: Sequence[ViewSet], sfm: SfMResult) -> np.ndarray:
+    """``[k, k]`` overlap between NeRFs: 3D points of the SfM model seen by both (symmetric: the smaller count)."""
+    overlap = np.zeros((len(views), len(views)), dtype=int)
+    for i, vs in enumerate(views):
+        for name in vs.image_names:
+            if name in sfm.covisible:
+                overlap[i] += np.asarray(sfm.covisible[name])
+    return np.minimum(overlap, overlap.T)
+
+
+def spanning_pairs(overlap: np.ndarray) -> list[tuple[int, int]]:
+    """Maximum spanning tree (Prim) of the NeRF overlap graph: every NeRF checked against its best neighbour."""
+    k = len(overlap)
+    in_tree, pairs = {0}, []
+    while len(in_tree) < k:
+        best = max(((a, b) for a in in_tree for b in range(k) if b not in in_tree), key=lambda p: overlap[p])
+        pairs.append(tuple(sorted(best)))
+        in_tree.add(best[1])
+    return pairs
+
+
+def best_views(
+    views: Sequence[ViewSet], sfm: SfMResult, pairs: Sequence[tuple[int, int]]
+) -> dict[tuple[int, int], list[int]]:
+    """Per checked pair and direction (a, b): a's kept views, those that share the most SfM points with b first."""
+    k = len(views)
+    view_order = {}
+    for i, j in pairs:
+        for a, b in ((i, j), (j, i)):
+            names_a = views[a].image_names
+            cov = np.array([sfm.covisible.get(n, [0] * k)[b] if views[a].kept[n_i] else -1
+                            for n_i, n in enumerate(names_a)])  # fmt: skip
+            view_order[(a, b)] = [int(v) for v in np.argsort(-cov, kind="stable") if cov[v] >= 0]
+    return view_order
+
+
+def passed(check: CrossRenderCheck, config: RegistrationConfig) -> bool:
+    """Whether a pair's cross-render NCC reaches the threshold (a pair that saw nothing in common fails)."""
+    return bool(np.isfinite(check.score) and check.score >= config.ncc_threshold)
+
+
+def failure_message(checks: Sequence[CrossRenderCheck], names: Sequence[str], config: RegistrationConfig) -> str | None:
+    """The one-line error for the first failed pair, or None when every checked pair passed."""
+    for c in checks:
+        if not passed(c, config):
+            what = "saw nothing in common" if not np.isfinite(c.score) else f"NCC {c.score:.2f}"
+            return (
+                f"{names[c.i]} and {names[c.j]}: cross-render self-check failed ({what} < {config.ncc_threshold}); "
+                f"the SfM probably merged unrelated content; {SUGGESTION} (or calibrate --ncc-threshold for blurry "
+                "renders)"
+            )
+    return None
