@@ -23,19 +23,13 @@ Frames: everything is drawn in the common frame, in viser units (nerfstudio's x1
 
 from __future__ import annotations
 
-import atexit
 import contextlib
-import hashlib
-import os
-import shutil
-import tempfile
-import threading
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import nerfstudio.configs.base_config  # noqa: F401 - first: nerfstudio.utils.writer imported alone hits nerfstudio's own import cycle
 import numpy as np
 import viser.theme
 import viser.transforms as vtf
@@ -44,13 +38,13 @@ from nerfstudio.utils import writer
 from nerfstudio.utils.writer import GLOBAL_BUFFER, EventName
 from nerfstudio.viewer.render_state_machine import RenderAction
 from nerfstudio.viewer.viewer_elements import ViewerControl
-from viser import infra
 
 from nerfuser_ns import runs
 from nerfuser_ns.blending import SHARE_PALETTE
 from nerfuser_ns.registration.record import read_render_poses, render_folders
 from nerfuser_ns.sim3 import transform_poses
 from nerfuser_ns.spec import FusionSpecError, read_fusion_spec
+from nerfuser_ns.viewer_page import serve_offline_page
 
 if TYPE_CHECKING:  # the model imports this module (it carries the scene control): no import back at run time
     from nerfstudio.viewer.viewer import Viewer
@@ -240,76 +234,6 @@ def fused_scene(model: NerfuserModel, datamanager: Any = None) -> FusedScene:
 
 
 # ----------------------------------------------------------------------------------------------------------------------
-# An offline page
-
-
-_client_root: Path | None = None
-_client_root_lock = threading.Lock()
-
-
-def _cache_dir() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "nerfuser_ns"
-
-
-def offline_client_root(build_dir: Path) -> Path:
-    """viser's client build with its analytics tag removed (viser 0.2.7's index.html loads Google's gtag.js, the
-    only outside request the page makes). The other files are links into the installed package.
-
-    Kept in ``~/.cache/nerfuser_ns/viser-client-<key>`` (reused by every process; a temporary folder if the cache is
-    not writable), keyed by the build's path and page.
-    """
-    global _client_root
-    with _client_root_lock:
-        if _client_root is not None and (_client_root / "index.html").is_file():
-            return _client_root
-        html = (build_dir / "index.html").read_text()
-        start = html.find("<!-- Google tag (gtag.js) -->")
-        end = html.find("</script>", html.find("</script>", start) + 1) if start >= 0 else -1
-        if start < 0 or end < 0:
-            return build_dir  # another viser build: nothing to remove
-        key = hashlib.sha256(f"{build_dir.resolve()}\n{html}".encode()).hexdigest()[:16]
-        root = _cache_dir() / f"viser-client-{key}"
-        if not (root / "index.html").is_file():
-            try:
-                root.parent.mkdir(parents=True, exist_ok=True)
-                tmp = Path(tempfile.mkdtemp(prefix=".viser-client-", dir=root.parent))
-            except OSError:
-                tmp = root = Path(tempfile.mkdtemp(prefix="nerfuser-viser-client-"))
-                atexit.register(shutil.rmtree, root, True)
-            for entry in build_dir.iterdir():
-                if entry.name != "index.html":
-                    (tmp / entry.name).symlink_to(entry.resolve())
-            (tmp / "index.html").write_text(html[:start] + html[end + len("</script>") :])
-            if tmp != root:
-                try:
-                    tmp.rename(root)
-                except OSError:  # another process made it first
-                    shutil.rmtree(tmp, ignore_errors=True)
-        _client_root = root
-        return root
-
-
-def _serve_offline_page() -> None:
-    """Make every viser server of this process serve :func:`offline_client_root` (idempotent)."""
-
-    init = infra.WebsockServer.__init__
-    if getattr(init, "_nerfuser_offline", False):
-        return
-
-    def patched(self, *args: Any, **kwargs: Any) -> None:
-        init(self, *args, **kwargs)
-        root = self._http_server_root
-        if root is not None and (Path(root) / "index.html").is_file():
-            try:
-                self._http_server_root = offline_client_root(Path(root))
-            except OSError as e:  # a read-only temp dir: serve the page as it is
-                warnings.warn(f"nerfuser viewer: serving viser's page unchanged ({e})", stacklevel=2)
-
-    patched._nerfuser_offline = True  # type: ignore[attr-defined]
-    infra.WebsockServer.__init__ = patched  # type: ignore[method-assign]
-
-
-# ----------------------------------------------------------------------------------------------------------------------
 # The viewer control
 
 
@@ -360,7 +284,7 @@ class NerfuserSceneControl(ViewerControl):
         self.rays_per_second: float | None = None
         """The renderer's speed, timed after the warm-up (sizes the low-resolution frames; see LOW_RES_SECONDS)."""
         # ns-viewer builds the model before the viser server: the page it serves is fixed now.
-        _serve_offline_page()
+        serve_offline_page()
 
     def _setup(self, viewer: Viewer) -> None:
         super()._setup(viewer)
