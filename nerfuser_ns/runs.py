@@ -266,6 +266,22 @@ def dataset_path(config: TrainerConfig, data_override: Path | None = None) -> Pa
     return None if data is None else Path(data)
 
 
+def check_dataset_folder(path: Path | str, what: str = "--data") -> Path:
+    """``path`` as a dataset a nerfstudio dataparser reads: a folder with ``transforms.json`` (nerfstudio-data), a
+    ``colmap/sparse`` or ``sparse`` model (COLMAP), or a ``transforms.json`` file; RunLoadError (one line) otherwise."""
+    path = Path(path)
+    if not path.exists():
+        raise RunLoadError(f"{what} {path}: no such folder; pass the dataset folder the run was trained on")
+    if path.is_file():
+        if path.suffix != ".json":
+            raise RunLoadError(f"{what} {path}: a file that is not a transforms.json; pass the dataset folder")
+        return path
+    if not any((path / p).exists() for p in ("transforms.json", "colmap/sparse", "sparse")):
+        raise RunLoadError(f"{what} {path}: not a dataset folder (no transforms.json, colmap/sparse or sparse); "
+                           "pass the folder ns-process-data wrote")  # fmt: skip
+    return path
+
+
 @functools.lru_cache(maxsize=64)
 def _sha256(path: Path, mtime_ns: int, size: int) -> str:
     digest = hashlib.sha256()

@@ -26,8 +26,13 @@ import weakref
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
+
+# What these fixes patch (torchmetrics' LPIPS, nerfstudio's hash encoding, numpy's pickle types, dynamo) is imported
+# inside the functions that patch it: nerfstudio's method discovery imports this module, which must stay cheap and
+# must not import nerfstudio modules before the patches are in place.
 
 _FAST_PATH_ENV = "NERFUSER_CPU_FAST_PATH"
 _installed = False
@@ -79,8 +84,6 @@ def _allow_nerfstudio_checkpoints() -> None:
     """nerfstudio saves numpy scalars (e.g. in scheduler state); allow exactly those types."""
     if not hasattr(torch.serialization, "add_safe_globals"):  # torch < 2.4: torch.load is not weights_only
         return
-    import numpy as np
-
     safe: list[Any] = [np.dtype, np.ndarray]
     try:
         from numpy._core.multiarray import _reconstruct, scalar  # numpy >= 2

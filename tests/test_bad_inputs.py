@@ -216,6 +216,17 @@ def reg_data_count(ws):
     return Call(_register(ws, "--data", str(data)), ["--data names 1 dataset folders for 2 runs", "one per run"])
 
 
+def reg_data_not_a_dataset(ws):
+    empty = ws.root / "not_a_dataset"
+    empty.mkdir()
+    return Call(_register(ws, "--data", str(empty), str(empty)), [str(empty), "not a dataset folder"])
+
+
+def reg_data_missing(ws):
+    gone = ws.root / "moved_away"
+    return Call(_register(ws, "--data", str(gone), str(gone)), [str(gone), "no such folder"])
+
+
 def reg_interrupted(ws):
     """Ctrl+C once the inputs checked out (the registration itself is replaced): 130, one line, no output."""
     from nerfuser_ns.scripts import register as register_cli
@@ -382,6 +393,8 @@ ROWS = [
     pytest.param(Row("register", reg_nan_center), id="register-nan-sampling-center"),
     pytest.param(Row("register", reg_tiny_render_size), id="register-sampling-size-4"),
     pytest.param(Row("register", reg_data_count), id="register-data-count-differs-from-configs"),
+    pytest.param(Row("register", reg_data_not_a_dataset), id="register-data-not-a-dataset"),
+    pytest.param(Row("register", reg_data_missing), id="register-data-missing-folder"),
     pytest.param(Row("register", reg_interrupted, rc=130), id="register-ctrl-c"),
     pytest.param(Row("train", train_negative_gamma), id="train-gamma-negative"),
     pytest.param(Row("train", train_nan_gamma), id="train-gamma-nan"),

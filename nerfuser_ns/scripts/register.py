@@ -31,7 +31,7 @@ from nerfuser_ns.registration import (
     write_registration,
 )
 from nerfuser_ns.renderers import NerfstudioRenderer
-from nerfuser_ns.runs import RunLoadError, check_device, default_device
+from nerfuser_ns.runs import RunLoadError, check_dataset_folder, check_device, default_device
 
 CONSOLE = Console(width=120)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -64,6 +64,8 @@ class RegisterCommand(RegistrationConfig):
                 raise RegistrationError(
                     f"--data names {len(self.data)} dataset folders for {len(self.configs)} runs; name one per run"
                 )
+            for folder in self.data:
+                check_dataset_folder(folder)
             renderers = [
                 NerfstudioRenderer(c, device=self.device, eval_num_rays_per_chunk=self.eval_num_rays_per_chunk,
                                    data_override=self.data[i] if self.data else None)
