@@ -7,6 +7,7 @@ folder, so tests that reuse a NeRF's views do not render them again.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import shutil
@@ -701,3 +702,13 @@ def test_damaged_caches_are_rebuilt_or_named(tmp_path):
     (tmp_path / "sfm" / "observations.npz").write_bytes(b"PK\x03\x04 not a zip")
     with pytest.raises(reg.RegistrationError, match=r"observations.npz: damaged SfM cache .*delete"):
         reg.load_observations(SimpleNamespace(folder=str(tmp_path / "sfm")))
+
+
+def test_an_implausible_scale_is_warned_about(oc_renderers, oc_record, tmp_path, capsys, monkeypatch):
+    record = copy.deepcopy(oc_record)
+    record["nerfs"][1]["scale_to_reference"] = 1e-6
+    monkeypatch.setattr(cli, "register", lambda *args, **kwargs: record)
+    rc, out, _ = run_cli(tmp_path, oc_renderers, None, work_dir=tmp_path / "work")
+    printed = " ".join(capsys.readouterr().out.split())
+    assert rc == 0 and out.is_file()
+    assert "implausible scale to the reference for capture_b" in printed and "same place" in printed
