@@ -25,7 +25,7 @@ Relative paths are relative to the spec file's folder. ``--data`` may also point
 
 Registration file
 -----------------
-All reading of it goes through :func:`read_registration`, which parses it with
+All reading of it goes through :func:`read_registered_nerfs`, which parses it with
 :mod:`nerfuser_ns.registration.record` (the one owner of the file's format) and checks the runs and transforms. It
 reads what ``ns-nerfuser-register`` (:mod:`nerfuser_ns.registration`) writes (``kind: nerfuser_registration``; per
 NeRF ``name``, ``config``, ``T_to_reference``), and a minimal hand-written form
@@ -111,7 +111,7 @@ __all__ = [
     "FusionSpecError",
     "NerfEntry",
     "read_fusion_spec",
-    "read_registration",
+    "read_registered_nerfs",
     "run_registration",
     "validate_sim3",
     "write_fusion_spec",
@@ -202,7 +202,7 @@ def _same_file(a: Path, b: Path) -> bool:
 # Registration file
 
 
-def read_registration(path: Path | str, check_runs: bool = True) -> list[NerfEntry]:
+def read_registered_nerfs(path: Path | str, check_runs: bool = True) -> list[NerfEntry]:
     """Every NeRF of a registration file: name, config.yml and its SIM(3) into the common frame.
 
     The file is parsed by :func:`nerfuser_ns.registration.record.iter_registered_nerfs` (``ns-nerfuser-register``'s
@@ -266,7 +266,7 @@ def run_registration(
         raise FusionSpecError(
             one_line(f"{output}: automatic registration failed: {e} (run ns-nerfuser-register with other settings)")
         ) from None
-    return read_registration(output)
+    return read_registered_nerfs(output)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -298,7 +298,7 @@ def read_fusion_spec(
             )
     data = _read_json(path, "fusion spec")
     if "nerfs" in data and "runs" not in data:  # --data is a registration file
-        return FusionSpec(nerfs=read_registration(path), registration_path=path, spec_path=None)
+        return FusionSpec(nerfs=read_registered_nerfs(path), registration_path=path, spec_path=None)
 
     known = {"runs", "registration", "test_data", "test_to_common"}
     unknown = sorted(set(data) - known)
@@ -334,7 +334,7 @@ def read_fusion_spec(
         test_to_common = validate_sim3(data["test_to_common"], f"{path}: test_to_common")
 
     if registration_path.is_file():
-        nerfs = read_registration(registration_path)
+        nerfs = read_registered_nerfs(registration_path)
         if spec_runs is not None:
             nerfs = _match_runs(spec_runs, nerfs, path, registration_path)
     elif spec_runs is None:

@@ -150,7 +150,7 @@ def main(cfg: DemoConfig) -> None:
     }
     if cfg.register:
         from nerfuser_ns import registration
-        from nerfuser_ns.spec import read_registration
+        from nerfuser_ns.spec import read_registered_nerfs
 
         reg_path = cfg.output_dir / "registration.json"
         command = [
@@ -167,11 +167,11 @@ def main(cfg: DemoConfig) -> None:
         result = subprocess.run(command, cwd=ROOT)
         if result.returncode != 0:
             raise SystemExit("demo: registration failed (see above); rerun with --no-register to skip it")
-        entries = read_registration(reg_path)
+        entries = read_registered_nerfs(reg_path)
         # scored against the truth afterwards: the registration never sees it
         truth = nerf_to_world_from_captures([np.asarray(captures[name]["capture_to_world"]) for name in configs],
                                             [loaded[name].data_to_nerf for name in configs])
-        record = score_registration(registration.read_registration(reg_path), truth)
+        record = score_registration(registration.read_registered_nerfs(reg_path), truth)
         transforms_sets["estimated"] = {
             name: entry.nerf_to_common for name, entry in zip(configs, entries, strict=True)
         }

@@ -21,7 +21,7 @@ from PIL import Image  # noqa: E402
 
 from nerfuser_ns.blending import SHARE_PALETTE  # noqa: E402
 from nerfuser_ns.files import atomic_path  # noqa: E402
-from nerfuser_ns.spec import read_registration  # noqa: E402
+from nerfuser_ns.spec import read_registered_nerfs  # noqa: E402
 from nerfuser_ns.viewer import read_render_folder, short_name  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +49,7 @@ def main(cfg: MakeFigure) -> None:
         image = Image.open(cfg.demo_dir / "fused" / "estimated" / method / f"test_{cfg.view:03d}.png")
         panels.append((f"{label}\nPSNR {psnr[method]['psnr']:.2f} dB over the test views", image))
     registration = json.loads((cfg.demo_dir / "registration.json").read_text())
-    entries = read_registration(cfg.demo_dir / "registration.json", check_runs=False)
+    entries = read_registered_nerfs(cfg.demo_dir / "registration.json", check_runs=False)
 
     fig = plt.figure(figsize=(13, 3.3), dpi=110)
     for k, (title, image) in enumerate(panels):

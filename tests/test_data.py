@@ -19,7 +19,7 @@ from PIL import Image
 from nerfuser_ns import data as fdata
 from nerfuser_ns import registration, sim3
 from nerfuser_ns import spec as fspec
-from nerfuser_ns.spec import FusionSpecError, NerfEntry, read_fusion_spec, read_registration
+from nerfuser_ns.spec import FusionSpecError, NerfEntry, read_fusion_spec, read_registered_nerfs
 
 T_B = sim3.make_sim3(np.eye(3)[[1, 0, 2]] * [[1], [-1], [1]], np.array([1.0, 2.0, 0.5]), 0.4)
 
@@ -107,7 +107,7 @@ def test_registration_record_of_ns_nerfuser_register(tmp_path, two_runs):
         "pairs": [],
     }
     (tmp_path / "registration.json").write_text(json.dumps(record))
-    entries = read_registration(tmp_path / "registration.json")
+    entries = read_registered_nerfs(tmp_path / "registration.json")
     assert [e.name for e in entries] == ["a", "b"]
     np.testing.assert_allclose(entries[1].nerf_to_common, T_B)
     spec = read_fusion_spec(fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b]))  # default registration.json
@@ -381,12 +381,12 @@ def test_a_run_retrained_after_registration_is_refused(tmp_path, two_runs):
     entries = [{"config": str(a), "transform": np.eye(4).tolist(), "checkpoint": checkpoint_identity(a)},
                {"config": str(b), "transform": T_B.tolist(), "checkpoint": checkpoint_identity(b)}]  # fmt: skip
     reg = registration_file(tmp_path / "registration.json", entries)
-    assert [e.name for e in read_registration(reg)] == ["nerf0", "nerf1"]
+    assert [e.name for e in read_registered_nerfs(reg)] == ["nerf0", "nerf1"]
     assert entries[1]["checkpoint"]["step"] == 9 and len(entries[1]["checkpoint"]["sha256"]) == 64
     # b trained further: a newer checkpoint
     (b.parent / "nerfstudio_models" / "step-000000019.ckpt").write_bytes(b"other weights")
     with pytest.raises(FusionSpecError, match=r"changed since it was registered \(registered step 9, now step 19"):
-        read_registration(reg)
+        read_registered_nerfs(reg)
     spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b])
     with pytest.raises(FusionSpecError, match="re-run ns-nerfuser-register"):
         read_fusion_spec(spec, register=False)
@@ -394,10 +394,10 @@ def test_a_run_retrained_after_registration_is_refused(tmp_path, two_runs):
     (b.parent / "nerfstudio_models" / "step-000000019.ckpt").unlink()
     (b.parent / "nerfstudio_models" / "step-000000009.ckpt").write_bytes(b"overwritten")
     with pytest.raises(FusionSpecError, match="registered step 9, now step 9"):
-        read_registration(reg)
+        read_registered_nerfs(reg)
     # hand-written registrations without the record still load
     registration_file(reg, [{k: v for k, v in e.items() if k != "checkpoint"} for e in entries])
-    assert len(read_registration(reg)) == 2
+    assert len(read_registered_nerfs(reg)) == 2
 
 
 @pytest.mark.parametrize(

@@ -31,7 +31,7 @@ from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import metrics
 from nerfuser_ns.blending import BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.model import fuse_models, map_rays
-from nerfuser_ns.spec import read_registration
+from nerfuser_ns.spec import read_registered_nerfs
 
 """Every blend method, in the paper's table order."""
 
@@ -152,7 +152,7 @@ class SceneRuns:
 
 def registered_transforms(registration_file: Path | str, scene: SceneRuns) -> list[Float[np.ndarray, "4 4"]]:
     """Estimated NeRF -> common transforms from a registration file, in the scene's capture order."""
-    by_name = {e.name: e.nerf_to_common for e in read_registration(registration_file, check_runs=False)}
+    by_name = {e.name: e.nerf_to_common for e in read_registered_nerfs(registration_file, check_runs=False)}
     missing = [c for c in scene.captures if c not in by_name]
     if missing:
         raise EvaluationError(f"{registration_file}: no NeRF named {missing[0]!r} (it has {sorted(by_name)})")
