@@ -51,7 +51,7 @@ def main(cfg: MakeFigure) -> None:
     registration = json.loads((cfg.demo_dir / "registration.json").read_text())
     entries = read_registered_nerfs(cfg.demo_dir / "registration.json", check_runs=False)
 
-    fig = plt.figure(figsize=(13, 3.3), dpi=110)
+    fig = plt.figure(figsize=(13, 3.5), dpi=110)
     for k, (title, image) in enumerate(panels):
         ax = fig.add_subplot(1, 4, k + 1)
         ax.imshow(np.asarray(image))
@@ -67,7 +67,7 @@ def main(cfg: MakeFigure) -> None:
     ax.set_title("registration cameras, common frame", fontsize=9)
     ax.legend(fontsize=7, loc="upper left")
     ax.set_xticks([]), ax.set_yticks([]), ax.set_zticks([])
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
     cfg.output.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(cfg.output) as tmp:
         fig.savefig(tmp, format="png")
