@@ -56,6 +56,7 @@ def test_fast_path_switch_reads_environment(monkeypatch, fast_path_restored):
 def test_lpips_is_lazy_and_offline(monkeypatch, tmp_path):
     """nerfstudio's models build LPIPS in populate_modules; offline that must neither download nor fail."""
     runtime.install()
+    monkeypatch.setattr(runtime, "_lpips_warned", False)  # it warns once per process: an earlier test may have
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))  # an empty hub cache: no weights
 
     def no_network(*args, **kwargs):
