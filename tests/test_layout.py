@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -92,3 +93,12 @@ def test_type_checking_imports_do_not_count(tmp_path):
     p = tmp_path / "m.py"
     p.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from nerfuser_ns import model\n")
     assert project_imports(p) == set()
+
+
+def test_every_subpackage_is_installed():
+    """A package folder missing from pyproject's list works in an editable install and vanishes from a wheel."""
+    pyproject = (PACKAGE.parent / "pyproject.toml").read_text()
+    listed = set(re.findall(r'"(nerfuser_ns[\w.]*)"', pyproject.split("packages = [", 1)[1].split("]", 1)[0]))
+    code = {p.parent for p in PACKAGE.rglob("*.py") if "__pycache__" not in p.parts}
+    folders = {_module_name(p / "__init__.py") for p in code} | {"nerfuser_ns.method_configs"}
+    assert folders - listed == set()
