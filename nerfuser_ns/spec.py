@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from jaxtyping import Float
 from rich.console import Console
+from rich.markup import escape
 
 from nerfuser_ns import registration
 from nerfuser_ns.registration import RegistrationConfig
@@ -255,7 +256,7 @@ def run_registration(
     sc = config.sampling
     camera = "the reference run's camera" if sc.width is None else f"{sc.width}x{sc.height} at {sc.fov_deg} deg"
     CONSOLE.print(
-        f"[bold]nerfuser:[/] no registration file at {output}: registering {len(config_paths)} runs now "
+        f"[bold]nerfuser:[/] no registration file at {escape(str(output))}: registering {len(config_paths)} runs now "
         f"(pose source {sc.source}, renders {camera}, {sc.size} px, estimator {config.estimator}, "
         f"refine {config.refine}, device {device}; change with --pipeline.datamanager.registration.*, or run "
         "ns-nerfuser-register yourself)"
