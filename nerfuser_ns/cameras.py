@@ -78,19 +78,14 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> Float[np.nd
 
 
 def camera_rays(
-    c2w: ArrayOrTensor,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    width: int,
-    height: int,
-    offsets: Sequence[tuple[float, float]] = ((0.5, 0.5),),
+    c2w: ArrayOrTensor, intrinsics: Intrinsics, offsets: Sequence[tuple[float, float]] = ((0.5, 0.5),)
 ) -> tuple[Float[Tensor, "h w k 3"], Float[Tensor, "h w k 3"]]:
     """Unit-direction rays (float64) of one camera; ``offsets`` are (x, y) sub-pixel positions within each pixel.
 
     Directions follow nerfstudio: camera-space ``((col + ox - cx) / fx, -(row + oy - cy) / fy, -1)``, normalised.
     """
+    fx, fy, cx, cy, width, height = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width,
+                                     intrinsics.height)  # fmt: skip
     c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float64) if not isinstance(c2w, Tensor) else c2w)
     c2w_t = c2w_t.to(torch.float64)
     if c2w_t.shape not in ((3, 4), (4, 4)):

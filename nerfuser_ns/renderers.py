@@ -136,7 +136,7 @@ class NerfstudioRenderer:
         along the unit-direction ray, i.e. ray distance in the NeRF frame's units)."""
         loaded = self._load()
         k = intrinsics
-        cameras = runs.make_cameras(as_4x4(c2w)[:, :3, :], k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        cameras = runs.make_cameras(as_4x4(c2w)[:, :3, :], k)
         names = ("rgb", "accumulation", "depth") if depth else ("rgb", "accumulation")
         out = runs.render_views(loaded.model, cameras, outputs=names, progress=False)
         rgb = out["rgb"].clamp(0, 1).numpy().astype(np.float32)

@@ -39,6 +39,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from torch import Tensor
 
 from nerfuser_ns import runtime
+from nerfuser_ns.cameras import Intrinsics
 
 
 class RunLoadError(ValueError):
@@ -526,15 +527,11 @@ def load_run(
 
 
 def make_cameras(
-    camera_to_worlds: Float[Tensor, "num_cams 3 4"] | Float[np.ndarray, "num_cams 3 4"],
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    width: int,
-    height: int,
+    camera_to_worlds: Float[Tensor, "num_cams 3 4"] | Float[np.ndarray, "num_cams 3 4"], intrinsics: Intrinsics
 ) -> Cameras:
-    """Pinhole cameras in nerfstudio's convention (OpenGL axes: the camera looks along -z)."""
+    """Pinhole cameras in nerfstudio's convention (OpenGL axes: the camera looks along -z), all with ``intrinsics``."""
+    k = intrinsics
+    fx, fy, cx, cy, width, height = k.fx, k.fy, k.cx, k.cy, k.width, k.height
     c2w = torch.as_tensor(np.asarray(camera_to_worlds), dtype=torch.float32)
     if c2w.ndim == 2:
         c2w = c2w[None]

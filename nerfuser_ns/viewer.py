@@ -41,6 +41,7 @@ from nerfstudio.viewer.viewer_elements import ViewerControl
 
 from nerfuser_ns import runs
 from nerfuser_ns.blending import SHARE_PALETTE
+from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.record import read_render_poses, render_folders
 from nerfuser_ns.sim3 import transform_poses
 from nerfuser_ns.spec import FusionSpecError, read_fusion_spec
@@ -532,8 +533,7 @@ class NerfuserSceneControl(ViewerControl):
         c2w[:3, 3] = model.nerf_origins[0].detach().cpu().numpy() + [0.0, 0.0, float(model.nerf_scales[0])]
 
         def render(width: int, height: int) -> None:
-            cams = runs.make_cameras(c2w[None, :3, :], fx=width, fy=width, cx=width / 2, cy=height / 2, width=width,
-                                     height=height)  # fmt: skip
+            cams = runs.make_cameras(c2w[None, :3, :], Intrinsics(width, width, width / 2, height / 2, width, height))
             runs.render_views(model, cams.to(model.device), outputs=("rgb",), progress=False)  # returns CPU tensors
 
         try:

@@ -42,7 +42,7 @@ from PIL import Image
 from rich.console import Console
 
 from nerfuser_ns import runs, sim3
-from nerfuser_ns.bench.scenes import make_layout, render_camera, to_uint8, write_capture
+from nerfuser_ns.bench.scenes import make_layout, render, to_uint8, write_capture
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import read_registration
 from nerfuser_ns.spec import write_fusion_spec
@@ -140,7 +140,7 @@ def stage_scene(layout, case_dir: Path) -> None:
         start = time.perf_counter()
         folder.mkdir(parents=True, exist_ok=True)
         for i in range(cap.num_views):
-            out = render_camera(layout.scene, cap.c2w_world[i], cap.intrinsics, supersample=2)
+            out = render(layout.scene, cap.c2w_world[i], cap.intrinsics, supersample=2)
             Image.fromarray(to_uint8(out.rgb)).save(folder / f"view_{i:05d}.png")
         (folder / ".done").write_text("")
         _add_time(case_dir, f"images {cap.name}", time.perf_counter() - start)

@@ -119,7 +119,7 @@ def main(cfg: DemoConfig) -> None:
         # world -> dataset (capture) frame -> NeRF frame
         world_to_nerf = run.data_to_nerf @ sim3.invert_sim3(capture_to_world)
         c2w_nerf = sim3.transform_poses(world_to_nerf, c2w_world)
-        cams = runs.make_cameras(c2w_nerf[:, :3], intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
+        cams = runs.make_cameras(c2w_nerf[:, :3], intr)
         t = time.perf_counter()
         out = runs.render_views(run.model, cams, outputs=("rgb",), description=f"rendering {name}")
         per_view = (time.perf_counter() - t) / len(frames)
@@ -187,7 +187,7 @@ def main(cfg: DemoConfig) -> None:
     from nerfuser_ns.model import fuse_models
 
     c2w_common = sim3.transform_poses(world_to_common, c2w_world)
-    cams = runs.make_cameras(c2w_common[:, :3], intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
+    cams = runs.make_cameras(c2w_common[:, :3], intr)
     methods = BLEND_METHODS
     keys = tuple(f"rgb_{m.replace('-', '_')}" for m in methods)
     summary["blending"] = {}

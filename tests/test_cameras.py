@@ -45,7 +45,7 @@ def test_camera_rays_hit_the_pixel_they_belong_to():
     """Projecting a point along each pixel-centre ray back through K lands on that pixel's centre (OpenGL axes)."""
     k = Intrinsics(50.0, 55.0, 16.5, 11.0, 32, 24)
     c2w = np.eye(4)
-    o, d = camera_rays(c2w, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+    o, d = camera_rays(c2w, k)
     assert o.shape == d.shape == (24, 32, 1, 3)
     torch.testing.assert_close(torch.linalg.norm(d, dim=-1), torch.ones(24, 32, 1, dtype=torch.float64))
     p = (o + 2.0 * d)[..., 0, :]  # camera frame = world frame

@@ -20,6 +20,7 @@ from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.training import train
 from nerfuser_ns.blending import BLEND_METHODS
+from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.model import NerfuserModel, fuse_models, map_rays
 from nerfuser_ns.registration import NerfEntry, write_minimal_registration
 from nerfuser_ns.spec import write_fusion_spec
@@ -30,7 +31,7 @@ BIN = Path(sys.executable).parent
 OUTPUTS = ("rgb", "depth", "accumulation")
 # A camera in the NeRF's own frame, looking at the scene centre along -z.
 C2W = np.array([[1.0, 0, 0, 0.05], [0, 1, 0, -0.02], [0, 0, 1, 0.6], [0, 0, 0, 1]])
-INTR = dict(fx=20, fy=20, cx=10, cy=8, width=20, height=16)
+INTR = Intrinsics(fx=20, fy=20, cx=10, cy=8, width=20, height=16)
 # A SIM(3) far from the identity: scale 3.7, a generic rotation, a translation.
 T_FAR = sim3.make_sim3(
     scenes.yaw_rotation(0.7) @ np.array([[1, 0, 0], [0, np.cos(0.4), -np.sin(0.4)], [0, np.sin(0.4), np.cos(0.4)]]),
@@ -40,7 +41,7 @@ T_FAR = sim3.make_sim3(
 
 
 def cams(c2w: np.ndarray):
-    return runs.make_cameras(np.asarray(c2w)[None], **INTR)
+    return runs.make_cameras(np.asarray(c2w)[None], INTR)
 
 
 def render(model, c2w: np.ndarray, outputs=OUTPUTS) -> dict[str, torch.Tensor]:
@@ -229,7 +230,7 @@ def test_each_ray_uses_only_its_own_nerfs_in_any_batch(pair, monkeypatch):
     c2w_c = C2W.copy()
     c2w_c[:3, 3] += [1.5, 0.0, 0.0]  # sees C as C2W sees A
     nerfs = [("a", a, np.eye(4)), ("b", b, T_b), ("c", b, T_c)]
-    bundle = runs.make_cameras(np.stack([C2W, c2w_c]), **INTR).generate_rays(
+    bundle = runs.make_cameras(np.stack([C2W, c2w_c]), INTR).generate_rays(
         torch.arange(2)[:, None], keep_shape=False
     )
     at_c = bundle.camera_indices[:, 0] == 1  # the cameras' rays interleave

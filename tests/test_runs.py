@@ -13,6 +13,7 @@ import yaml
 
 from nerfuser_ns import runs, runtime
 from nerfuser_ns.bench.training import train
+from nerfuser_ns.cameras import Intrinsics
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +49,7 @@ def test_checkpoint_round_trip_matches_in_memory_render(trained):
     loaded = runs.load_run(trained.config_path)
     assert loaded.step == trained.step
     c2w = torch.tensor([[1.0, 0, 0, 0.05], [0, 1, 0, -0.02], [0, 0, 1, 0.6]])
-    cams = runs.make_cameras(c2w[None], fx=20, fy=20, cx=10, cy=8, width=20, height=16)
+    cams = runs.make_cameras(c2w[None], Intrinsics(20, 20, 10, 8, 20, 16))
     ours = runs.render_views(loaded.model, cams, progress=False)
     ref = runs.render_views(trained.model, cams, progress=False)
     assert ours["rgb"].shape == (1, 16, 20, 3)
@@ -133,9 +134,9 @@ def test_bad_config_paths_give_clear_errors(tmp_path, trained):
 
 def test_render_views_rejects_bad_cameras():
     with pytest.raises(ValueError, match="camera_to_worlds"):
-        runs.make_cameras(np.zeros((2, 2, 4)), 10, 10, 5, 5, 10, 10)
+        runs.make_cameras(np.zeros((2, 2, 4)), Intrinsics(10, 10, 5, 5, 10, 10))
     with pytest.raises(ValueError, match="positive"):
-        runs.make_cameras(np.zeros((1, 3, 4)), 10, 10, 5, 5, 0, 10)
+        runs.make_cameras(np.zeros((1, 3, 4)), Intrinsics(10, 10, 5, 5, 0, 10))
 
 
 def test_runtime_installed_by_loading():
@@ -242,7 +243,7 @@ def test_optimized_poses_match_nerfstudios_camera_optimizer():
         optimizer.pose_adjustment.copy_(torch.randn(n, 6, generator=torch.Generator().manual_seed(0)) * 0.05)
     model = torch.nn.Module()
     model.camera_optimizer = optimizer
-    c2w = runs.make_cameras(np.tile(np.eye(4)[:3], (n, 1, 1)) + 0.1, 10, 10, 5, 5, 10, 10).camera_to_worlds
+    c2w = runs.make_cameras(np.tile(np.eye(4)[:3], (n, 1, 1)) + 0.1, Intrinsics(10, 10, 5, 5, 10, 10)).camera_to_worlds
     ours = runs.optimized_poses(model, c2w)
     for i in range(n):
         cam = Cameras(camera_to_worlds=c2w[i : i + 1], fx=10.0, fy=10.0, cx=5.0, cy=5.0, metadata={"cam_idx": i})

@@ -236,7 +236,7 @@ def pixel_rays(
     k = intrinsics
     origins, directions = [], []
     for pose in c2w:
-        o, d = camera_rays(pose, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        o, d = camera_rays(pose, k)
         origins.append(o[:, :, 0].numpy())
         directions.append(d[:, :, 0].numpy())
     return np.stack(origins), np.stack(directions)

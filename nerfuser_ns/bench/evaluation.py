@@ -30,6 +30,7 @@ from torch import Tensor
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import metrics
 from nerfuser_ns.blending import BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
+from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.model import fuse_models, map_rays
 from nerfuser_ns.spec import read_registered_nerfs
 
@@ -125,7 +126,8 @@ class SceneRuns:
         """The world-frame test capture, posed in the common frame, and its ground-truth images."""
         test_dir, meta, frames, c2w_world, world_to_common = self._test_capture(reference, max_views)
         c2w = sim3.transform_poses(world_to_common, c2w_world)
-        cams = runs.make_cameras(c2w[:, :3], meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"])
+        intrinsics = Intrinsics(meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"])
+        cams = runs.make_cameras(c2w[:, :3], intrinsics)
         images = [np.asarray(Image.open(test_dir / f["file_path"]).convert("RGB"), np.float32) / 255 for f in frames]
         return cams, torch.from_numpy(np.stack(images))
 

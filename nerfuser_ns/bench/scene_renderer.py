@@ -75,7 +75,7 @@ class SceneFrameRenderer:
         k = intrinsics
         rgbs, accs, depths = [], [], []
         for pose in world:
-            out = render(self.scene, pose, k.fx, k.fy, k.cx, k.cy, k.width, k.height, supersample=self.supersample)
+            out = render(self.scene, pose, k, supersample=self.supersample)
             rgbs.append(out.rgb.numpy())
             accs.append(out.mask.numpy().astype(np.float32))
             depths.append(out.depth.numpy() / scale)

@@ -597,40 +597,26 @@ class RenderOutput(NamedTuple):
 
 
 def render(
-    scene: Scene,
-    c2w: Float[ArrayOrTensor, "3|4 4"],
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    width: int,
-    height: int,
-    supersample: int = 2,
+    scene: Scene, c2w: Float[ArrayOrTensor, "3|4 4"], intrinsics: Intrinsics, supersample: int = 2
 ) -> RenderOutput:
     """Renders one pinhole camera (OpenGL axes, nerfstudio convention) posed by camera-to-world ``c2w`` (world frame).
 
     Colour averages a ``supersample`` x ``supersample`` grid of rays per pixel (anti-aliasing); depth, mask and
     object id come from the pixel-centre ray, the ray nerfstudio casts for that pixel.
     """
-    check_positive_int("width", width)
-    check_positive_int("height", height)
+    check_positive_int("width", intrinsics.width)
+    check_positive_int("height", intrinsics.height)
     offsets = supersample_offsets(supersample)
     centre_in_grid = supersample % 2 == 1  # odd grids contain the pixel centre already
     if not centre_in_grid:
         offsets = offsets + [(0.5, 0.5)]
-    origins, directions = camera_rays(c2w, fx, fy, cx, cy, width, height, offsets)
+    origins, directions = camera_rays(c2w, intrinsics, offsets)
     hits = render_rays(scene, origins, directions)
     k = supersample * supersample
     centre = k // 2 if centre_in_grid else k
     rgb = hits.rgb[:, :, :k].mean(dim=2)
     depth = torch.where(hits.mask[:, :, centre], hits.depth[:, :, centre], torch.zeros_like(hits.depth[:, :, centre]))
     return RenderOutput(rgb=rgb, depth=depth, mask=hits.mask[:, :, centre], object_id=hits.object_id[:, :, centre])
-
-
-def render_camera(scene: Scene, c2w: Float[ArrayOrTensor, "3|4 4"], intrinsics: Intrinsics, supersample: int = 2):
-    """:func:`render` with an :class:`Intrinsics` bundle."""
-    k = intrinsics
-    return render(scene, c2w, k.fx, k.fy, k.cx, k.cy, k.width, k.height, supersample=supersample)
 
 
 def ray_to_z_depth(depth: Float[Tensor, "h w"], intrinsics: Intrinsics) -> Float[Tensor, "h w"]:
@@ -1096,7 +1082,7 @@ def write_capture(
     poses = capture.c2w_world if world_frame else capture.c2w_capture
     frames = []
     for i in range(capture.num_views):
-        out = render_camera(layout.scene, capture.c2w_world[i], k, supersample=supersample)
+        out = render(layout.scene, capture.c2w_world[i], k, supersample=supersample)
         z = ray_to_z_depth(out.depth, k).numpy() / scale
         depth_u16 = np.where(out.mask.numpy(), np.clip(np.round(z / DEPTH_UNIT_SCALE), 1, 65535), 0).astype(np.uint16)
         image_name, depth_name = f"images/frame_{i:05d}.png", f"depths/frame_{i:05d}.png"

@@ -16,10 +16,10 @@ import torch
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.base_model import Model
 from nerfstudio.scripts.train import _set_random_seed
-from nerfuser_ns.method_configs.nerfacto_cpu import nerfacto_cpu_config
 
 from nerfuser_ns import runtime
 from nerfuser_ns.files import atomic_path, write_text_atomic
+from nerfuser_ns.method_configs.nerfacto_cpu import nerfacto_cpu_config
 
 
 @dataclass

@@ -65,7 +65,7 @@ def test_pixel_rays_match_nerfstudio_rays(layout):
     """Our pixel-centre rays are nerfstudio's, so ``o + depth * d`` is what nerfstudio's exporter computes."""
     c2w = frame_renderer(layout, T_LARGE).training_poses()[3]
     origins, directions = bl.pixel_rays(c2w[None], INTR)
-    cams = runs.make_cameras(c2w[None, :3], INTR.fx, INTR.fy, INTR.cx, INTR.cy, INTR.width, INTR.height)
+    cams = runs.make_cameras(c2w[None, :3], INTR)
     bundle = cams.generate_rays(camera_indices=0)
     np.testing.assert_allclose(directions[0], bundle.directions.numpy(), atol=1e-6)
     np.testing.assert_allclose(origins[0], bundle.origins.numpy(), atol=1e-6)
@@ -83,7 +83,7 @@ def test_backprojected_depth_lies_on_the_true_surface(layout):
     world = sim3.transform_points(renderer.frame_to_world, points.reshape(-1, 3))
     world_poses = sim3.transform_poses(renderer.frame_to_world, c2w)
     room = layout.scene.object_index("room")
-    object_id = np.stack([scenes.render_camera(layout.scene, p, INTR, supersample=1).object_id.numpy()
+    object_id = np.stack([scenes.render(layout.scene, p, INTR, supersample=1).object_id.numpy()
                           for p in world_poses]).ravel()  # fmt: skip
     on_room = object_id == room
     assert on_room.mean() > 0.3
@@ -332,7 +332,7 @@ def test_nerfacto_depth_renders_become_a_cloud_in_the_nerf_frame(tiny_scene, tmp
     intr = Intrinsics.from_fov(32, 24, 65.0)
     batch = bl.render_rgbd(renderer, c2w, intr)
     assert batch.depth.shape == (2, 24, 32) and np.isfinite(batch.depth).all() and (batch.depth > 0).all()
-    cams = runs.make_cameras(c2w[:, :3], intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
+    cams = runs.make_cameras(c2w[:, :3], intr)
     model = runs.load_run(result.config_path).model
     expected = runs.render_views(model, cams, outputs=("depth",), progress=False)["depth"][..., 0].numpy()
     np.testing.assert_allclose(batch.depth, expected, rtol=1e-5)

@@ -190,8 +190,8 @@ def test_test_surface_points_are_where_the_test_rays_hit(tiny):
     k = layout.test.intrinsics
     assert points.shape == (layout.test.num_views, k.height, k.width, 3)
     for v, c2w in enumerate(layout.test.c2w_world):
-        hit = scenes.render_camera(layout.scene, c2w, k, supersample=1)
-        origins, directions = camera_rays(c2w, k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        hit = scenes.render(layout.scene, c2w, k, supersample=1)
+        origins, directions = camera_rays(c2w, k)
         expected = (origins + directions * hit.depth[..., None, None])[:, :, 0].numpy()
         world = points[v] @ to_world[:3, :3].T + to_world[:3, 3]  # back from the common frame
         mask = hit.mask.numpy()

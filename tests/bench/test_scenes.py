@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import subprocess
@@ -15,7 +16,7 @@ from PIL import Image
 
 from nerfuser_ns import sim3
 from nerfuser_ns.bench import scenes as S
-from nerfuser_ns.cameras import Intrinsics, camera_rays
+from nerfuser_ns.cameras import camera_rays
 
 SMALL = dict(num_views=6, num_test_views=3, width=48, height=36, texels_per_metre=32.0)
 
@@ -59,24 +60,20 @@ def test_capture_frame_pose_maps_to_same_render(room: S.SceneLayout):
         T = cap.capture_to_world
         s = float(sim3.decompose_sim3(T)[2])
         for i in (0, 3):
-            world = S.render_camera(room.scene, cap.c2w_world[i], cap.intrinsics)
+            world = S.render(room.scene, cap.c2w_world[i], cap.intrinsics)
             mapped_pose = sim3.transform_poses(T, cap.c2w_capture[i])
-            mapped = S.render_camera(room.scene, mapped_pose, cap.intrinsics)
+            mapped = S.render(room.scene, mapped_pose, cap.intrinsics)
             torch.testing.assert_close(mapped.rgb, world.rgb, atol=1e-5, rtol=0)
             assert torch.equal(mapped.mask, world.mask)
             # Depth in capture units (world / s) scaled back by s is the world depth.
             torch.testing.assert_close((mapped.depth / s) * s, world.depth, atol=1e-9, rtol=1e-9)
             # Same ray in the capture frame: its hit point maps to the world hit point.
-            o, d = camera_rays(cap.c2w_capture[i], **_intr_kwargs(cap.intrinsics))
+            o, d = camera_rays(cap.c2w_capture[i], cap.intrinsics)
             p_cap = (o + (world.depth / s)[..., None, None] * d)[:, :, 0][world.mask].numpy()
             p_world = (p_cap * s) @ sim3.decompose_sim3(T)[0].T + T[:3, 3]
-            o_w, d_w = camera_rays(cap.c2w_world[i], **_intr_kwargs(cap.intrinsics))
+            o_w, d_w = camera_rays(cap.c2w_world[i], cap.intrinsics)
             expected = (o_w + world.depth[..., None, None] * d_w)[:, :, 0][world.mask].numpy()
             np.testing.assert_allclose(p_world, expected, atol=1e-9)
-
-
-def _intr_kwargs(k: Intrinsics) -> dict:
-    return dict(fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width=k.width, height=k.height)
 
 
 def test_capture_frame_normalisation(room: S.SceneLayout):
@@ -95,8 +92,8 @@ def test_capture_frame_normalisation(room: S.SceneLayout):
 
 def test_render_rays_matches_render(room: S.SceneLayout):
     cap = room.test
-    out = S.render_camera(room.scene, cap.c2w_world[0], cap.intrinsics, supersample=1)
-    o, d = camera_rays(cap.c2w_world[0], **_intr_kwargs(cap.intrinsics))
+    out = S.render(room.scene, cap.c2w_world[0], cap.intrinsics, supersample=1)
+    o, d = camera_rays(cap.c2w_world[0], cap.intrinsics)
     hits = S.render_rays(room.scene, o[:, :, 0], 3.0 * d[:, :, 0])  # non-unit directions: depth is the ray parameter
     torch.testing.assert_close(hits.rgb, out.rgb)
     torch.testing.assert_close(hits.depth * 3.0, out.depth)
@@ -129,7 +126,7 @@ def test_dataset_roundtrip(room: S.SceneLayout, room_dir: Path):
         np.testing.assert_allclose(sim3.transform_poses(T, poses), cap.c2w_world, atol=1e-9)
         for i in (0, len(tf["frames"]) - 1):
             frame = tf["frames"][i]
-            out = S.render_camera(room.scene, cap.c2w_world[i], cap.intrinsics)
+            out = S.render(room.scene, cap.c2w_world[i], cap.intrinsics)
             img = np.asarray(Image.open(room_dir / cap_gt["path"] / frame["file_path"]))
             np.testing.assert_array_equal(img, S.to_uint8(out.rgb))
             # Depth PNG: z-depth in capture units x 1000; times the capture scale it is the world z-depth.
@@ -183,7 +180,7 @@ def test_object_centric_captures_overlap():
 
     def fraction_seeing(cap, obj):
         seen = [
-            (S.render_camera(lay.scene, c2w, cap.intrinsics, supersample=1).object_id == ids[obj]).float().mean()
+            (S.render(lay.scene, c2w, cap.intrinsics, supersample=1).object_id == ids[obj]).float().mean()
             for c2w in cap.c2w_world
         ]
         return torch.stack(seen)
@@ -199,8 +196,8 @@ def test_object_centric_captures_overlap():
 def _surface_points(lay: S.SceneLayout, cap: S.Capture, stride: int = 4) -> np.ndarray:
     pts = []
     for c2w in cap.c2w_world:
-        out = S.render_camera(lay.scene, c2w, cap.intrinsics, supersample=1)
-        o, d = camera_rays(c2w, **_intr_kwargs(cap.intrinsics))
+        out = S.render(lay.scene, c2w, cap.intrinsics, supersample=1)
+        o, d = camera_rays(c2w, cap.intrinsics)
         p = (o + out.depth[..., None, None] * d)[::stride, ::stride, 0][out.mask[::stride, ::stride]]
         pts.append(p.numpy())
     return np.concatenate(pts)
@@ -274,7 +271,7 @@ def test_images_are_textured(room: S.SceneLayout, street: S.SceneLayout, drive: 
     for lay in (room, street, drive):
         for cap in lay.captures + [lay.test]:
             for c2w in cap.c2w_world[:3]:
-                out = S.render_camera(lay.scene, c2w, cap.intrinsics)
+                out = S.render(lay.scene, c2w, cap.intrinsics)
                 assert out.mask.float().mean() > 0.99  # nothing empty: the scenes are enclosed
                 grey = out.rgb.mean(-1)
                 assert grey.std() > 0.05
@@ -311,11 +308,11 @@ def test_bad_layout_arguments(kwargs, match):
 def test_bad_render_arguments(room: S.SceneLayout):
     k = room.test.intrinsics
     with pytest.raises(ValueError, match="c2w"):
-        S.render(room.scene, np.eye(3), k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        S.render(room.scene, np.eye(3), k)
     with pytest.raises(ValueError, match="width"):
-        S.render(room.scene, np.eye(4), k.fx, k.fy, k.cx, k.cy, 0, k.height)
+        S.render(room.scene, np.eye(4), dataclasses.replace(k, width=0))
     with pytest.raises(ValueError, match="supersample"):
-        S.render(room.scene, np.eye(4), k.fx, k.fy, k.cx, k.cy, k.width, k.height, supersample=0)
+        S.render(room.scene, np.eye(4), k, supersample=0)
 
 
 def test_script_reports_bad_values(tmp_path: Path):
