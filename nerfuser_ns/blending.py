@@ -497,9 +497,6 @@ class BlendSettings:
             raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {num_nerfs} NeRFs")
         return self if self.tau != 0 else dataclasses.replace(self, tau=None)
 
-    def check(self, num_nerfs: int | None = None) -> None:
-        self.checked(num_nerfs)
-
     def replace(self, num_nerfs: int | None = None, **changes: Any) -> BlendSettings:
         """A checked copy with ``changes`` (the only way settings change after the model is built)."""
         return dataclasses.replace(self, **changes).checked(num_nerfs)
