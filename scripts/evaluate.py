@@ -193,8 +193,9 @@ def build_scenes(cfg: EvaluateConfig, console) -> list[Scene]:  # noqa: ANN001
             scene_dir, runs_dir, captures, max_num_iterations=cfg.max_num_iterations, log=console.print
         )
         runs = SceneRuns.from_dirs(name, scene_dir, runs_dir)
-        # rho counts the views the runs trained on (nerfstudio's train split), not the capture's views
-        trained_on = len(training_cameras(runs.configs[0]))
+        # rho counts the views the runs trained on (nerfstudio's train split), not the capture's views; the dataset
+        # is this scene's capture (the shipped demo runs name the demo's scene folder, absent on a fresh clone)
+        trained_on = len(training_cameras(runs.configs[0], data_override=scene_dir / captures[0]))
         out.append(
             Scene(name, layout, int(seed), runs, [report["runs"][c]["input_key"] for c in captures], trained_on)
         )
