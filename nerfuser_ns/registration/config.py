@@ -124,13 +124,58 @@ class SfMConfig:
 
 
 @dataclass
+class KnownGeometryConfig:
+    """Registration on known geometry: SIFT keypoints of the renders lifted to 3D with the rendered depth at the known
+    poses, matched across NeRFs, and SIM(3) hypotheses by RANSAC on the 3D-3D matches (no SfM)."""
+
+    max_num_features: int = 4096
+    """SIFT features per render."""
+    min_accumulation: float = 0.95
+    """A keypoint's depth is trusted only where the render is this opaque (in its 3x3 neighbourhood)."""
+    max_depth_step: float = 0.05
+    """... and where the depth varies by at most this fraction of itself over the 3x3 neighbourhood (no edge)."""
+    consistency_tolerance: float = 0.02
+    """A lifted point agrees with another view of its NeRF when that view's rendered depth at the point's projection
+    is within this fraction of the point's distance from that camera."""
+    min_consistent_views: int = 1
+    """Other views of the same NeRF a lifted point must agree with (0: no multi-view check)."""
+    vocabulary_words: int = 256
+    """Visual words of the vocabulary built from the renders' own descriptors (for candidate view pairs)."""
+    candidate_views: int = 5
+    """Candidate pairs: each view is matched to this many most similar views of each other NeRF."""
+    exhaustive_max_pairs: int = 256
+    """Match every cross-NeRF view pair while there are at most this many (per NeRF pair)."""
+    ratio: float = 0.8
+    """Lowe's ratio test on descriptor distances (with mutual nearest neighbours)."""
+    ransac_max_error: float = 0.02
+    """RANSAC inlier threshold on 3D matches, as a fraction of the target NeRF's median rendered depth."""
+    min_inliers: int = 30
+    """A SIM(3) hypothesis needs this many inlier 3D matches."""
+    max_hypotheses: int = 3
+    """Distinct hypotheses kept per NeRF pair (sequential RANSAC: the next one from the matches left over)."""
+    min_hypothesis_fraction: float = 0.25
+    """Hypotheses with fewer inliers than this fraction of the best one's are dropped before the self-check scores
+    them (each scored hypothesis costs cross-renders)."""
+    ambiguity_margin: float = 0.05
+    """Two hypotheses that both pass the self-check and score within this NCC of each other make the registration
+    ambiguous: it fails and names both scores instead of picking one."""
+    loss_scale: float = 0.01
+    """Joint solve: soft-L1 scale of 3D residuals, relative to the points' distance from their cameras."""
+
+
+@dataclass
 class RegistrationConfig:
     """Registration from re-rendering: pose sampling, SfM, estimator and self-check settings."""
 
     sampling: PoseSamplingConfig = field(default_factory=PoseSamplingConfig)
     """Which views of each NeRF to render."""
+    mode: Literal["sfm", "known-geometry"] = "sfm"
+    """sfm: the paper's one SfM over all renders, then a SIM(3) per NeRF from its cameras; known-geometry: no SfM, the
+    renders' keypoints lifted to 3D with the rendered depth at the known poses and matched across NeRFs (ours)."""
     sfm: SfMConfig = field(default_factory=SfMConfig)
-    """SfM settings."""
+    """SfM settings (mode sfm)."""
+    known_geometry: KnownGeometryConfig = field(default_factory=KnownGeometryConfig)
+    """Known-geometry settings (mode known-geometry)."""
     estimator: Literal["nerfuser", "nerfuser-median", "umeyama-ransac"] = "nerfuser"
     """nerfuser: the paper's median pairwise scale and robust (L1) bridge average; nerfuser-median: the bridges'
     element-wise median as in the paper's code; umeyama-ransac: Umeyama on camera centres with LO-RANSAC (pycolmap)."""
@@ -183,6 +228,22 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
         (config.umeyama_max_error > 0, "--umeyama-max-error must be > 0"),
         (config.sfm.exhaustive_max_images >= 2 and config.sfm.own_neighbors >= 1 and config.sfm.cross_views >= 1,
          "--sfm.exhaustive-max-images, --sfm.own-neighbors and --sfm.cross-views must be positive"),
+        (config.mode in ("sfm", "known-geometry"), f"unknown --mode {config.mode!r}; use sfm or known-geometry"),
+    ]
+    kg = config.known_geometry
+    checks += [
+        (kg.max_num_features >= 16, "--known-geometry.max-num-features must be >= 16"),
+        (0.0 <= kg.min_accumulation <= 1.0, "--known-geometry.min-accumulation must be in [0, 1]"),
+        (kg.max_depth_step > 0 and kg.consistency_tolerance > 0 and kg.ransac_max_error > 0 and kg.loss_scale > 0,
+         "--known-geometry.max-depth-step, consistency-tolerance, ransac-max-error and loss-scale must be > 0"),
+        (kg.min_consistent_views >= 0, "--known-geometry.min-consistent-views must be >= 0"),
+        (kg.vocabulary_words >= 2 and kg.candidate_views >= 1 and kg.exhaustive_max_pairs >= 0,
+         "--known-geometry.vocabulary-words must be >= 2 and --known-geometry.candidate-views >= 1"),
+        (0.0 < kg.ratio <= 1.0, "--known-geometry.ratio must be in (0, 1]"),
+        (kg.min_inliers >= 3 and kg.max_hypotheses >= 1, "--known-geometry.min-inliers must be >= 3 and "
+         "--known-geometry.max-hypotheses >= 1"),
+        (0.0 <= kg.min_hypothesis_fraction <= 1.0 and kg.ambiguity_margin >= 0,
+         "--known-geometry.min-hypothesis-fraction must be in [0, 1] and --known-geometry.ambiguity-margin >= 0"),
     ]
     for ok, message in checks:
         if not ok:

@@ -1,10 +1,14 @@
 """The registration pipeline: the automatic pose-source cascade, one attempt composed of the steps, and the
 nerfstudio-run entry point.
 
-One attempt (:func:`register_once`): render (:mod:`~nerfuser_ns.registration.render_cache`) -> SfM
-(:mod:`~nerfuser_ns.registration.sfm`) -> per-NeRF SIM(3) (:mod:`~nerfuser_ns.registration.estimate`) -> rigid-set
-bundle adjustment (:mod:`~nerfuser_ns.registration.refine`) -> cross-render self-check
-(:mod:`~nerfuser_ns.registration.self_check`) -> the record (:mod:`~nerfuser_ns.registration.record`).
+One attempt (:func:`register_once`), mode ``sfm`` (the paper's): render
+(:mod:`~nerfuser_ns.registration.render_cache`) -> SfM (:mod:`~nerfuser_ns.registration.sfm`) -> per-NeRF SIM(3)
+(:mod:`~nerfuser_ns.registration.estimate`) -> rigid-set bundle adjustment (:mod:`~nerfuser_ns.registration.refine`)
+-> cross-render self-check (:mod:`~nerfuser_ns.registration.self_check`) -> the record
+(:mod:`~nerfuser_ns.registration.record`). Mode ``known-geometry`` (ours, :func:`register_known_geometry`): render
+with depth -> keypoints lifted to 3D, candidate view pairs, 3D-3D matches, SIM(3) hypotheses scored by the self-check
+(:mod:`~nerfuser_ns.registration.known_geometry`, :mod:`~nerfuser_ns.registration.retrieval`) -> joint solve ->
+self-check -> the record.
 """
 
 from __future__ import annotations
@@ -23,15 +27,39 @@ from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.config import (
     CONSOLE,
     DEFAULT_RENDER_SIZE,
+    SUGGESTION,
     RegistrationConfig,
     RegistrationError,
     RegistrationFailed,
+    json_float,
+    json_matrix,
     validate_settings,
 )
 from nerfuser_ns.registration.estimate import estimate_transforms
-from nerfuser_ns.registration.record import build_result, work_dir_for, write_registration
+from nerfuser_ns.registration.known_geometry import (
+    Hypothesis,
+    LiftedFeatures,
+    Matches3D,
+    joint_solve,
+    lift_keypoints,
+    match_pair,
+    sim3_hypotheses,
+)
+from nerfuser_ns.registration.record import (
+    build_known_geometry_result,
+    build_result,
+    work_dir_for,
+    write_registration,
+)
 from nerfuser_ns.registration.refine import refine_transforms
-from nerfuser_ns.registration.render_cache import check_kept_views, render_key, render_views_cached
+from nerfuser_ns.registration.render_cache import ViewSet, check_kept_views, render_key, render_views_cached
+from nerfuser_ns.registration.retrieval import (
+    assign_words,
+    build_vocabulary,
+    candidate_pairs,
+    tfidf_similarity,
+    view_histograms,
+)
 from nerfuser_ns.registration.self_check import (
     best_views,
     covisibility,
@@ -178,6 +206,8 @@ def register_once(
 
     Raises :class:`RegistrationFailed` (with the record) when the self-check rejects the solution.
     """
+    if config.mode == "known-geometry":
+        return register_known_geometry(renderers, config, work_dir, console)
     work_dir = Path(work_dir)
     ref, min_views, intr = _check_inputs(renderers, config)
     timings: dict[str, float] = {}
@@ -221,6 +251,205 @@ def register_once(
         refinement=refinement, overlap=overlap, checks=checks, config=config, intrinsics=intr, timings=timings,
     ).to_record()
     failure = failure_message(checks, [r.name for r in renderers], config)
+    if failure is not None:
+        raise RegistrationFailed(failure, record)
+    return record
+
+
+def _matches_per_pair(
+    feats: Sequence[LiftedFeatures], views: Sequence[ViewSet], config: RegistrationConfig
+) -> dict[tuple[int, int], Matches3D]:
+    """3D-3D matches of every NeRF pair, over candidate view pairs from a vocabulary of the renders' descriptors."""
+    kg = config.known_geometry
+    vocabulary = build_vocabulary(np.concatenate([f.descriptors for f in feats]), kg.vocabulary_words, config.sfm.seed)
+    hists = [view_histograms(assign_words(f.descriptors, vocabulary), f.view, len(vs.c2w), len(vocabulary))
+             for f, vs in zip(feats, views, strict=True)]  # fmt: skip
+    similarity = tfidf_similarity(hists)
+    out = {}
+    for a in range(len(feats)):
+        for b in range(a + 1, len(feats)):
+            sim_ab = similarity[a][b].copy()
+            sim_ab[~views[a].kept] = -np.inf  # left-out views have no features; never candidates
+            sim_ab[:, ~views[b].kept] = -np.inf
+            view_pairs = [(i, j) for i, j in candidate_pairs(sim_ab, kg.candidate_views, kg.exhaustive_max_pairs)
+                          if views[a].kept[i] and views[b].kept[j]]  # fmt: skip
+            out[(a, b)] = match_pair(feats[a], feats[b], view_pairs, kg.ratio, a, b)
+    return out
+
+
+def _views_by_support(feats: LiftedFeatures, index: np.ndarray, num_views: int) -> list[int]:
+    """Views of a NeRF ordered by how many of the given keypoints they hold, most first (views holding none left
+    out)."""
+    counts = np.bincount(feats.view[index], minlength=num_views)
+    return [int(v) for v in np.argsort(-counts, kind="stable") if counts[v] > 0]
+
+
+def _score_hypotheses(
+    renderers: Sequence[Renderer], views: Sequence[ViewSet], feats: Sequence[LiftedFeatures], m: Matches3D,
+    hyps: list[Hypothesis], intr: Intrinsics, config: RegistrationConfig,
+) -> None:
+    """Cross-render self-check of each hypothesis of the pair (a, b), on the views richest in its inliers."""
+    a, b = m.a, m.b
+    for h in hyps:
+        order = {(0, 1): _views_by_support(feats[a], m.ia[h.inliers], len(views[a].c2w)),
+                 (1, 0): _views_by_support(feats[b], m.ib[h.inliers], len(views[b].c2w))}  # fmt: skip
+        check = cross_render_check([renderers[a], renderers[b]], [views[a], views[b]],
+                                   np.stack([np.eye(4), h.T]), [(0, 1)], intr, config, order)[0]  # fmt: skip
+        h.score = check.score
+
+
+def _choose(hyps: list[Hypothesis], names: tuple[str, str], config: RegistrationConfig) -> int:
+    """The index of the best-scored hypothesis; an ambiguity (two passing hypotheses within the margin) is an error."""
+    if len(hyps) == 1:
+        return 0
+    scores = np.array([h.score if h.score is not None and np.isfinite(h.score) else -np.inf for h in hyps])
+    order = np.argsort(-scores, kind="stable")
+    best, second = scores[order[0]], scores[order[1]]
+    margin = config.known_geometry.ambiguity_margin
+    if second >= config.ncc_threshold and best - second < margin:
+        angle = sim3.rotation_angle_deg(sim3.decompose_sim3(hyps[order[0]].T)[0]
+                                        @ sim3.decompose_sim3(hyps[order[1]].T)[0].T)  # fmt: skip
+        raise RegistrationError(
+            f"{names[0]} and {names[1]}: ambiguous: two transforms {float(angle):.0f} deg apart both pass the "
+            f"cross-render self-check (NCC {best:.2f} and {second:.2f}, margin {margin}); the overlap looks "
+            "symmetric: render views that see something unique to one side (--sampling.source both, more poses)"
+        )
+    return int(order[0])
+
+
+def _chain_from_reference(
+    chosen: dict[tuple[int, int], Hypothesis], tree: Sequence[tuple[int, int]], ref: int, k: int
+) -> np.ndarray:
+    """NeRF -> reference SIM(3)s composed along the tree's chosen pairwise transforms (``T_b->a`` for a < b)."""
+    T = np.full((k, 4, 4), np.nan)
+    T[ref] = np.eye(4)
+    done = {ref}
+    while len(done) < k:
+        for a, b in tree:
+            if a in done and b not in done:  # p_ref = T_a p_a = T_a T_b->a p_b
+                T[b] = T[a] @ chosen[(a, b)].T
+                done.add(b)
+            elif b in done and a not in done:
+                T[a] = T[b] @ sim3.invert_sim3(chosen[(a, b)].T)
+                done.add(a)
+    return T
+
+
+def register_known_geometry(
+    renderers: Sequence[Renderer], config: RegistrationConfig, work_dir: Path | str, console: Console
+) -> dict:
+    """One registration on known geometry (mode ``known-geometry``, ours); returns the record.
+
+    Raises :class:`RegistrationError` (one line) when a NeRF has too few reliable keypoints, a NeRF matches no other,
+    or two hypotheses are equally good; :class:`RegistrationFailed` (with the record) when the self-check rejects the
+    solution.
+    """
+    work_dir = Path(work_dir)
+    ref, min_views, intr = _check_inputs(renderers, config)
+    kg = config.known_geometry
+    names = [r.name for r in renderers]
+    k = len(renderers)
+    timings: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    views = [render_views_cached(r, config.sampling, work_dir / "renders", console, depth=True) for r in renderers]
+    timings["render"] = time.perf_counter() - t0
+    check_kept_views(views, min_views, config.sampling)
+
+    t0 = time.perf_counter()
+    with console.status("known geometry: SIFT keypoints lifted to 3D with the rendered depth"):
+        feats = [lift_keypoints(vs, intr, kg, config.sfm.num_threads) for vs in views]
+    for vs, f in zip(views, feats, strict=True):
+        if len(f.view) < kg.min_inliers:
+            raise RegistrationError(
+                f"{vs.name}: only {len(f.view)} of {f.counts['detected']} keypoints have reliable, multi-view "
+                f"consistent depth (need {kg.min_inliers}); the renders see too little texture or the NeRF's depth "
+                f"is unreliable: {SUGGESTION}, or use --mode sfm"
+            )
+    timings["features"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    with console.status("known geometry: matching keypoints across NeRFs"):
+        matches = _matches_per_pair(feats, views, config)
+    timings["matching"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    hypotheses: dict[tuple[int, int], list[Hypothesis]] = {}
+    for (a, b), m in matches.items():
+        scale = float(np.median(feats[a].distance[m.ia])) if len(m.ia) else 1.0
+        hypotheses[(a, b)] = sim3_hypotheses(feats[b].points[m.ib], feats[a].points[m.ia],
+                                             kg.ransac_max_error * scale, kg, config.sfm.seed)  # fmt: skip
+        if len(hypotheses[(a, b)]) > 1:
+            with console.status(f"known geometry: scoring {len(hypotheses[(a, b)])} transforms of {names[a]} / "
+                                f"{names[b]} by cross-rendering"):  # fmt: skip
+                _score_hypotheses(renderers, views, feats, m, hypotheses[(a, b)], intr, config)
+    timings["hypotheses"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    chosen = {pair: hyps[_choose(hyps, (names[pair[0]], names[pair[1]]), config)]
+              for pair, hyps in hypotheses.items() if hyps}  # fmt: skip
+    overlap = np.zeros((k, k), dtype=int)
+    for (a, b), h in chosen.items():
+        overlap[a, b] = overlap[b, a] = len(h.inliers)
+    tree = spanning_pairs(overlap)
+    for a, b in tree:
+        if overlap[a, b] == 0:
+            best = max((len(h.inliers) for p, hs in hypotheses.items() if b in p for h in hs), default=0)
+            raise RegistrationError(
+                f"{names[b]}: no SIM(3) to the other NeRFs has {kg.min_inliers} inlier 3D matches (best {best}); "
+                f"the NeRFs may not overlap: {SUGGESTION}"
+            )
+    T_initial = _chain_from_reference(chosen, tree, ref, k)
+    # pairs off the tree join the solve only when they agree with the tree (a wrong link would pull it apart)
+    links, dropped = [], []
+    for (a, b), h in chosen.items():
+        implied = sim3.relative_sim3(T_initial[a], T_initial[b])  # b -> a
+        err = sim3.sim3_errors(h.T, implied)
+        if (a, b) not in tree and (err.r_err_deg > 5.0 or err.s_err > 0.1):
+            dropped.append([names[a], names[b]])
+            continue
+        ia, ib = matches[(a, b)].ia[h.inliers], matches[(a, b)].ib[h.inliers]
+        s_a, s_b = (float(sim3.decompose_sim3(T_initial[n])[2]) for n in (a, b))
+        sigma = 0.5 * (s_a * feats[a].distance[ia] + s_b * feats[b].distance[ib])
+        links.append((a, b, feats[a].points[ia], feats[b].points[ib], sigma))
+    T_to_ref, solve = joint_solve(T_initial, ref, links, kg.loss_scale)
+    timings["solve"] = time.perf_counter() - t0
+
+    checked_pairs = tree if config.self_check_views > 0 else []
+    order = {}
+    for i, j in checked_pairs:
+        m, h = matches[(i, j)], chosen[(i, j)]
+        order[(i, j)] = _views_by_support(feats[i], m.ia[h.inliers], len(views[i].c2w))
+        order[(j, i)] = _views_by_support(feats[j], m.ib[h.inliers], len(views[j].c2w))
+    t0 = time.perf_counter()
+    with console.status("self-check: cross-rendering NeRF pairs"):
+        checks = cross_render_check(renderers, views, T_to_ref, checked_pairs, intr, config, order)
+    timings["self_check"] = time.perf_counter() - t0
+
+    views_matched = [0] * k
+    for (a, b), h in chosen.items():
+        m = matches[(a, b)]
+        for n, idx in ((a, m.ia[h.inliers]), (b, m.ib[h.inliers])):
+            views_matched[n] = max(views_matched[n], len(np.unique(feats[n].view[idx])))
+    summary = {
+        "keypoints": {names[i]: f.counts for i, f in enumerate(feats)},
+        "pairs": [{
+            "names": [names[a], names[b]], "view_pairs": m.view_pairs, "matches": len(m.ia),
+            "ransac_max_error": kg.ransac_max_error * (float(np.median(feats[a].distance[m.ia])) if len(m.ia) else 1),
+            "hypotheses": [{"T_j_to_i": json_matrix(h.T), "inliers": len(h.inliers),
+                            "self_check_ncc": None if h.score is None else json_float(h.score)}
+                           for h in hypotheses[(a, b)]],
+            "chosen": None if (a, b) not in chosen else hypotheses[(a, b)].index(chosen[(a, b)]),
+        } for (a, b), m in matches.items()],
+        "tree": [[names[a], names[b]] for a, b in tree],
+        "dropped_pairs": dropped,
+        "joint_solve": solve,
+    }  # fmt: skip
+    record = build_known_geometry_result(
+        renderers=renderers, views=views, T_to_ref=T_to_ref, T_initial=T_initial, views_matched=views_matched,
+        overlap=overlap, checks=checks, config=config, timings=timings, known_geometry=summary,
+    ).to_record()
+    failure = failure_message(checks, names, config)
     if failure is not None:
         raise RegistrationFailed(failure, record)
     return record

@@ -2,7 +2,8 @@
 
 ``ns-nerfuser-register`` writes a JSON record (``kind: nerfuser_registration``): per NeRF its SIM(3)
 ``T_to_reference`` (``p_ref = T @ [p, 1]``, also stored as ``transform``, the key of the minimal hand-written form),
-diagnostics, the pairs and their self-check, the SfM summary, the settings and timings. :class:`RegistrationResult`
+diagnostics, the pairs and their self-check, the SfM summary (mode ``sfm``) or the 3D matching and hypotheses (mode
+``known-geometry``: ``sfm`` is null), the settings and timings. :class:`RegistrationResult`
 is that record typed (one field per value; :meth:`~RegistrationResult.to_record` writes the keys, aliases included).
 The fusion reads either form through :func:`iter_registered_nerfs` (:mod:`nerfuser_ns.spec` then checks the runs).
 
@@ -97,7 +98,9 @@ class NerfResult:
     """``p_reference = T @ [p_nerf, 1]`` (written twice: as ``T_to_reference`` and as its ``transform`` alias)."""
     scale_to_reference: float
     T_to_sfm: Float[np.ndarray, "4 4"]
+    """Into the solve's common frame: the SfM's (mode sfm) or the reference NeRF's (mode known-geometry)."""
     views: ViewCounts
+    """``registered``: views in the SfM's model (mode sfm) or with inlier 3D matches (mode known-geometry)."""
     render_folder: str
     renders_reused: bool
     estimator: str
@@ -105,8 +108,9 @@ class NerfResult:
     """How far the refinement moved the estimator's transform (r_deg, t, s); None when not refined."""
     cameras_used: int
     scale_to_sfm: float
-    scale_spread: float
-    scale_outlier_fraction: float
+    scale_spread: float | None
+    """The estimator's spread of per-camera scales (None in mode known-geometry, which has no cameras to compare)."""
+    scale_outlier_fraction: float | None
     residuals: Residuals
     extra: dict[str, Any] = field(default_factory=dict)
     """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
@@ -205,7 +209,8 @@ class RegistrationResult:
     """Index of the NeRF whose frame is the common frame."""
     nerfs: list[NerfResult]
     pairs: list[PairResult]
-    sfm: SfMSummary
+    sfm: SfMSummary | None
+    """The SfM run (None in mode known-geometry)."""
     refinement: dict | None
     """The rigid-set bundle adjustment's summary (:func:`nerfuser_ns.registration.refine.refine_transforms`)."""
     settings: dict
@@ -216,6 +221,9 @@ class RegistrationResult:
     """Seconds per step as computed (reused renders and SfM report what they took when made)."""
     sampling_choice: dict | None = None
     """The automatic pose-source choice (``register`` adds it)."""
+    known_geometry: dict | None = None
+    """Mode known-geometry: per NeRF its keypoint counts, per pair its 3D matches and scored SIM(3) hypotheses, the
+    joint solve (:func:`build_known_geometry_result`)."""
     format_version: int = FORMAT_VERSION
     extra: dict[str, Any] = field(default_factory=dict)
     """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
@@ -231,13 +239,16 @@ class RegistrationResult:
             "conventions": dict(CONVENTIONS),
             "nerfs": [n.to_record() for n in self.nerfs],
             "pairs": [p.to_record(names) for p in self.pairs],
-            "sfm": asdict(self.sfm),
+            "sfm": None if self.sfm is None else asdict(self.sfm),
             "refinement": self.refinement,
             "settings": self.settings,
             "timings_s": self.timings_s,
             "compute_timings_s": self.compute_timings_s,
-            "reused": {"renders": [n.renders_reused for n in self.nerfs], "sfm": self.sfm.reused},
+            "reused": {"renders": [n.renders_reused for n in self.nerfs],
+                       "sfm": self.sfm is not None and self.sfm.reused},
         }
+        if self.known_geometry is not None:
+            record["known_geometry"] = self.known_geometry
         if self.sampling_choice is not None:
             record["sampling_choice"] = self.sampling_choice
         return {**record, **self.extra}
@@ -247,14 +258,17 @@ class RegistrationResult:
         """The typed result of a record of this format (as :func:`read_registration` returns it); unknown keys are
         kept in ``extra``. Raises :class:`RegistrationError` when a key is missing or malformed."""
         known = {"format_version", "kind", "created", "reference", "conventions", "nerfs", "pairs", "sfm",
-                 "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice"}  # fmt: skip
+                 "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice",
+                 "known_geometry"}  # fmt: skip
         try:
             if record.get("kind") != KIND:
                 raise ValueError(f"kind {record.get('kind')!r} is not {KIND!r}")
             return cls(
                 created=record["created"], reference=record["reference"]["index"],
                 nerfs=[NerfResult.from_record(n) for n in record["nerfs"]],
-                pairs=[PairResult.from_record(p) for p in record["pairs"]], sfm=SfMSummary(**record["sfm"]),
+                pairs=[PairResult.from_record(p) for p in record["pairs"]],
+                sfm=None if record["sfm"] is None else SfMSummary(**record["sfm"]),
+                known_geometry=record.get("known_geometry"),
                 refinement=record["refinement"], settings=record["settings"], timings_s=record["timings_s"],
                 compute_timings_s=record["compute_timings_s"], sampling_choice=record.get("sampling_choice"),
                 format_version=record["format_version"], extra={k: v for k, v in record.items() if k not in known},
@@ -337,6 +351,67 @@ def build_result(
         settings=asdict(config),
         timings_s={step: round(s, 3) for step, s in timings.items()},
         compute_timings_s={step: None if s is None else round(s, 3) for step, s in compute.items()},
+    )
+
+
+def build_known_geometry_result(
+    *,
+    renderers: Sequence[Renderer],
+    views: Sequence[ViewSet],
+    T_to_ref: Float[np.ndarray, "k 4 4"],
+    T_initial: Float[np.ndarray, "k 4 4"],
+    views_matched: Sequence[int],
+    overlap: np.ndarray,
+    checks: Sequence[CrossRenderCheck],
+    config: RegistrationConfig,
+    timings: dict[str, float],
+    known_geometry: dict,
+) -> RegistrationResult:
+    """The result of a known-geometry registration: ``T_initial`` the chosen pairwise hypotheses chained from the
+    reference, ``T_to_ref`` after the joint solve, ``views_matched`` per NeRF its views with inlier matches,
+    ``overlap`` the inlier matches per NeRF pair, ``known_geometry`` the mode's own summary (stored as is)."""
+    k = len(renderers)
+    ref = config.reference % k
+    check_of = {(c.i, c.j): c for c in checks}
+    pairs = []
+    for i in range(k):
+        for j in range(i + 1, k):
+            c = check_of.get((i, j))
+            pairs.append(PairResult(
+                i, j, _matrix(sim3.relative_sim3(T_to_ref[i], T_to_ref[j])), int(overlap[i, j]),
+                None if c is None else PairCheck(
+                    json_float(c.score), json_float(c.ncc_i_in_j), json_float(c.ncc_j_in_i), c.views,
+                    config.ncc_threshold, passed(c, config),
+                ),
+            ))  # fmt: skip
+    change = sim3.sim3_errors(T_to_ref, T_initial)
+    none = Residuals(None, None, None, None)
+    nerfs = []
+    for i, (r, vs) in enumerate(zip(renderers, views, strict=True)):
+        config_path = getattr(r, "config_path", None)
+        scale = float(sim3.decompose_sim3(T_to_ref[i])[2])
+        nerfs.append(NerfResult(
+            name=r.name, config=None if config_path is None else str(Path(config_path).absolute()),
+            checkpoint=r.checkpoint_identity() if hasattr(r, "checkpoint_identity") else None,
+            T_to_reference=_matrix(T_to_ref[i]), scale_to_reference=scale, T_to_sfm=_matrix(T_to_ref[i]),
+            views=ViewCounts(len(vs.c2w), int(vs.kept.sum()), int(views_matched[i]),
+                             {s: vs.sources.count(s) for s in sorted(set(vs.sources))}),
+            render_folder=str(vs.folder), renders_reused=vs.reused, estimator="known-geometry",
+            refinement_change=None if i == ref else {
+                "r_deg": json_float(change.r_err_deg[i]), "t": json_float(change.t_err[i]),
+                "s": json_float(change.s_err[i])},
+            cameras_used=int(views_matched[i]), scale_to_sfm=scale, scale_spread=None, scale_outlier_fraction=None,
+            residuals=none,
+        ))  # fmt: skip
+    render_s = [vs.render_seconds for vs in views]
+    compute = {"render": None if None in render_s else float(sum(render_s)),
+               **{step: s for step, s in timings.items() if step != "render"}}  # fmt: skip
+    return RegistrationResult(
+        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), reference=ref, nerfs=nerfs, pairs=pairs,
+        sfm=None, refinement=None, settings=asdict(config),
+        timings_s={step: round(s, 3) for step, s in timings.items()},
+        compute_timings_s={step: None if s is None else round(s, 3) for step, s in compute.items()},
+        known_geometry=known_geometry,
     )
 
 

@@ -1,8 +1,8 @@
 """Registration step 1: sample camera poses in each NeRF's own frame and render them, cached in the work folder.
 
-Each NeRF's renders go to ``<work_dir>/renders/<key>`` (``images/*.png``, ``accumulation.npz``, ``poses.json``), the
-key a hash of the renderer's own cache key and the sampling settings: a later run with the same inputs reuses them,
-and a damaged folder is rendered again.
+Each NeRF's renders go to ``<work_dir>/renders/<key>`` (``images/*.png``, ``accumulation.npz``, ``poses.json``, and
+``depth.npz`` when depth is asked for), the key a hash of the renderer's own cache key, the sampling settings and
+whether depth is stored: a later run with the same inputs reuses them, and a damaged folder is rendered again.
 """
 
 from __future__ import annotations
@@ -101,6 +101,8 @@ class ViewSet:
     """Whether the renders came from the cache."""
     render_seconds: float | None = 0.0
     """Seconds the renders took when they were made (None for cache folders written before this was stored)."""
+    has_depth: bool = False
+    """Whether ``depth.npz`` holds each view's rendered ray distance."""
 
     @property
     def image_names(self) -> list[str]:
@@ -114,10 +116,17 @@ class ViewSet:
         with np.load(self.folder / "accumulation.npz") as z:
             return z["accumulation"].astype(np.float32)
 
+    def load_depth(self) -> Float[np.ndarray, "n h w"]:
+        """Ray distance per pixel (unit-direction rays, this NeRF's units; 0 where nothing is hit)."""
+        with np.load(self.folder / "depth.npz") as z:
+            return z["depth"].astype(np.float32)
 
-def render_key(renderer: Renderer, cfg: PoseSamplingConfig) -> str:
-    """Hash of everything the renders depend on: the renderer's own key (weights, mtime) and the sampling settings."""
-    return content_hash({"renderer": renderer.cache_key(), "sampling": asdict(cfg), "version": FORMAT_VERSION})[:16]
+
+def render_key(renderer: Renderer, cfg: PoseSamplingConfig, depth: bool = False) -> str:
+    """Hash of everything the renders depend on: the renderer's own key (weights, mtime), the sampling settings and
+    whether depth is stored (keys without depth are those of folders written before depth could be)."""
+    key = {"renderer": renderer.cache_key(), "sampling": asdict(cfg), "version": FORMAT_VERSION}
+    return content_hash({**key, "depth": True} if depth else key)[:16]
 
 
 def load_render_meta(folder: Path | str) -> dict[str, Any]:
@@ -131,8 +140,10 @@ def _damage(views: ViewSet) -> str | None:
     try:
         if views.load_accumulation().shape[0] != len(views.c2w):
             return "accumulation.npz does not match poses.json"
+        if views.has_depth and views.load_depth().shape[0] != len(views.c2w):
+            return "depth.npz does not match poses.json"
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
-        return f"accumulation.npz: {type(e).__name__}"
+        return f"accumulation.npz or depth.npz: {type(e).__name__}"
     for k in range(len(views.c2w)):
         try:
             with Image.open(views.folder / "images" / f"{k:05d}.png") as image:
@@ -143,10 +154,11 @@ def _damage(views: ViewSet) -> str | None:
 
 
 def render_views_cached(
-    renderer: Renderer, cfg: PoseSamplingConfig, renders_root: Path, console: Console = CONSOLE
+    renderer: Renderer, cfg: PoseSamplingConfig, renders_root: Path, console: Console = CONSOLE, depth: bool = False
 ) -> ViewSet:
-    """Sample poses and render them into ``renders_root/<key>``, or reuse the folder a previous run left there."""
-    key = render_key(renderer, cfg)
+    """Sample poses and render them into ``renders_root/<key>``, or reuse the folder a previous run left there;
+    ``depth`` also stores each view's rendered depth (the renderer must take ``depth=True``)."""
+    key = render_key(renderer, cfg, depth)
     folder = renders_root / key
     if (folder / POSES_FILE).is_file():
         try:
@@ -156,7 +168,7 @@ def render_views_cached(
                 renderer.name, folder, np.array([v["c2w"] for v in views], dtype=np.float64),
                 [v["source"] for v in views], np.array([v["mean_accumulation"] for v in views]),
                 np.array([v["kept"] for v in views], dtype=bool), reused=True,
-                render_seconds=meta.get("render_seconds"),
+                render_seconds=meta.get("render_seconds"), has_depth=depth,
             )
             damage = _damage(cached)
         except (KeyError, ValueError, TypeError) as e:
@@ -174,11 +186,13 @@ def render_views_cached(
     try:
         (tmp / "images").mkdir()
         accs = np.zeros((len(c2w), intr.height, intr.width), dtype=np.float16)
+        depths = np.zeros((len(c2w), intr.height, intr.width), dtype=np.float32) if depth else None
         bad = []
         with _progress(console) as bar:
             task = bar.add_task(f"rendering {renderer.name}", total=len(c2w))
             for k in range(len(c2w)):
-                out = renderer.render(c2w[k : k + 1], intr)
+                # renderers without depth need not take the keyword
+                out = renderer.render(c2w[k : k + 1], intr, **({"depth": True} if depth else {}))
                 rgb = np.asarray(out.rgb[0], dtype=np.float32)
                 if rgb.shape != (intr.height, intr.width, 3):
                     raise RegistrationError(
@@ -188,6 +202,10 @@ def render_views_cached(
                 acc = np.ones(rgb.shape[:2], np.float32) if out.accumulation is None else out.accumulation[0]
                 if not (np.isfinite(rgb).all() and np.isfinite(acc).all()):
                     bad.append(k)
+                if depth:
+                    if out.depth is None:
+                        raise RegistrationError(f"{renderer.name}: its renderer gives no depth; use --mode sfm")
+                    depths[k] = np.where(np.isfinite(out.depth[0]), out.depth[0], 0.0)
                 Image.fromarray(to_uint8(rgb)).save(tmp / "images" / f"{k:05d}.png", compress_level=1)
                 accs[k] = np.nan_to_num(acc, nan=0.0).clip(0, 1)
                 bar.advance(task)
@@ -197,6 +215,8 @@ def render_views_cached(
                 "check the run or pass another checkpoint"
             )
         np.savez_compressed(tmp / "accumulation.npz", accumulation=accs)
+        if depth:
+            np.savez_compressed(tmp / "depth.npz", depth=depths)
         mean_acc = accs.astype(np.float32).mean(axis=(1, 2))
         kept = mean_acc >= cfg.min_view_accumulation
         meta = {
@@ -221,7 +241,7 @@ def render_views_cached(
         raise
     # The poses as stored, so a first run and a rerun on the cache compute from identical numbers.
     stored = np.array([v["c2w"] for v in meta["views"]], dtype=np.float64)
-    return ViewSet(renderer.name, folder, stored, sources, mean_acc, kept, False, meta["render_seconds"])
+    return ViewSet(renderer.name, folder, stored, sources, mean_acc, kept, False, meta["render_seconds"], depth)
 
 
 def check_kept_views(views: Sequence[ViewSet], min_views: int, cfg: PoseSamplingConfig) -> None:

@@ -1,0 +1,75 @@
+"""Candidate view pairs across NeRFs from a visual vocabulary built from the renders' own SIFT descriptors (offline:
+no downloaded weights).
+
+The vocabulary is k-means (scikit-learn) over a seeded sample of every render's descriptors; each view becomes a tf-idf
+weighted, L2-normalised histogram of its words (a bag of visual words, as in Sivic and Zisserman's Video Google), and
+two views are similar when their histograms' cosine is high.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from jaxtyping import Float, Int
+from sklearn.cluster import KMeans
+
+MAX_TRAINING_DESCRIPTORS = 20000
+"""k-means runs on at most this many descriptors (a seeded sample)."""
+
+
+def build_vocabulary(
+    descriptors: Float[np.ndarray, "m d"], words: int, seed: int = 0
+) -> Float[np.ndarray, "w d"]:
+    """Visual words: k-means centres of (a seeded sample of) ``descriptors``; fewer words when there are fewer
+    distinct descriptors."""
+    rng = np.random.default_rng(seed)
+    sample = descriptors if len(descriptors) <= MAX_TRAINING_DESCRIPTORS else descriptors[
+        rng.choice(len(descriptors), MAX_TRAINING_DESCRIPTORS, replace=False)]  # fmt: skip
+    words = max(1, min(words, len(np.unique(sample, axis=0))))
+    kmeans = KMeans(n_clusters=words, n_init=1, max_iter=20, random_state=seed).fit(sample)
+    return kmeans.cluster_centers_.astype(np.float32)
+
+
+def assign_words(descriptors: Float[np.ndarray, "m d"], vocabulary: Float[np.ndarray, "w d"]) -> Int[np.ndarray, " m"]:
+    """The nearest word of each descriptor (squared L2 distance)."""
+    d2 = (vocabulary**2).sum(1)[None] - 2.0 * descriptors @ vocabulary.T
+    return np.argmin(d2, axis=1)
+
+
+def view_histograms(
+    words: Int[np.ndarray, " m"], view: Int[np.ndarray, " m"], num_views: int, num_words: int
+) -> Float[np.ndarray, "n w"]:
+    """Raw word counts per view."""
+    h = np.zeros((num_views, num_words), dtype=np.float64)
+    np.add.at(h, (view, words), 1.0)
+    return h
+
+
+def tfidf_similarity(histograms: Sequence[Float[np.ndarray, "n w"]]) -> list[list[np.ndarray]]:
+    """Cosine similarity of tf-idf vectors between every two view sets: ``out[a][b]`` is ``[n_a, n_b]``.
+
+    The inverse document frequency counts the views of every set (a word seen everywhere tells nothing)."""
+    allh = np.concatenate(histograms)
+    idf = np.log(len(allh) / np.maximum((allh > 0).sum(0), 1))
+    vecs = []
+    for h in histograms:
+        v = h / np.maximum(h.sum(1, keepdims=True), 1.0) * idf
+        vecs.append(v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12))
+    return [[va @ vb.T for vb in vecs] for va in vecs]
+
+
+def candidate_pairs(
+    similarity: Float[np.ndarray, "na nb"], per_view: int, exhaustive_max: int
+) -> list[tuple[int, int]]:
+    """View pairs (i of a, j of b) to match: all of them while there are at most ``exhaustive_max``, else each view's
+    ``per_view`` most similar views of the other set, both ways (sorted, without repeats)."""
+    na, nb = similarity.shape
+    if na * nb <= exhaustive_max:
+        return [(i, j) for i in range(na) for j in range(nb)]
+    pairs = set()
+    for i, row in enumerate(similarity):
+        pairs.update((i, int(j)) for j in np.argsort(-row, kind="stable")[:per_view])
+    for j, col in enumerate(similarity.T):
+        pairs.update((int(i), j) for i in np.argsort(-col, kind="stable")[:per_view])
+    return sorted(pairs)
