@@ -20,10 +20,11 @@ import tyro
 class MakeSceneConfig:
     """Render a ground-truth scene: one nerfstudio dataset per capture (own frame), a world-frame test capture."""
 
-    layout: Literal["object-centric", "street", "drive"] = "object-centric"
+    layout: Literal["object-centric", "street", "drive", "room"] = "object-centric"
     """Scene layout: an indoor room with two objects and one capture around each; a street with several
-    overlapping captures along it; or the same street driven through by a car with a surround camera rig, one
-    capture per block of the drive and side-view test cameras between blocks (like the paper's Mission Bay split).
+    overlapping captures along it; the same street driven through by a car with a surround camera rig, one
+    capture per block of the drive and side-view test cameras between blocks (like the paper's Mission Bay split);
+    or a room of repeated structure (opposite walls alike, paired furniture) with one capture in each half.
     """
     output_dir: Path = Path("data/scenes/object-centric")
     """Scene folder to create (replaced atomically if it already holds a generated scene)."""
@@ -34,7 +35,7 @@ class MakeSceneConfig:
     num_test_views: int = 12
     """Views of the world-frame test capture."""
     num_captures: int = 3
-    """Number of training captures (street and drive layouts; object-centric always has two)."""
+    """Number of training captures (street and drive layouts; object-centric and room always have two)."""
     width: int = 192
     """Image width in pixels."""
     height: int = 144
@@ -43,6 +44,8 @@ class MakeSceneConfig:
     """Horizontal field of view in degrees."""
     texels_per_metre: float = 128.0
     """Texture resolution in texels per metre (the street and drive layouts cap it at 48)."""
+    symmetric: bool = False
+    """Room layout: leave out its door, so the room is exactly symmetric under a half turn about its vertical axis."""
     supersample: int = 2
     """Anti-aliasing: rays per pixel along each axis (2 means 2x2)."""
     threads: int = 1
@@ -81,6 +84,7 @@ def main(config: MakeSceneConfig) -> None:
             height=config.height,
             hfov_deg=config.hfov_deg,
             texels_per_metre=config.texels_per_metre,
+            symmetric=config.symmetric,
         )
         total = sum(c.num_views for c in layout.captures) + layout.test.num_views
         columns = (TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())

@@ -1,7 +1,8 @@
 """Ground-truth synthetic scenes: textured geometry, a vectorised CPU ray-caster, capture layouts, dataset writer.
 
 The scenes stand in for real multi-capture data sets (NeRFuser's indoor object-centric scenes and its Mission Bay
-street split) with one thing real data lacks: the exact SIM(3) between every capture and the world.
+street split) with one thing real data lacks: the exact SIM(3) between every capture and the world. One more layout,
+``room``, is a deliberately repetitive room (opposite walls alike) that can fool a free SfM.
 
 Conventions used everywhere in the project:
 
@@ -22,8 +23,9 @@ Conventions used everywhere in the project:
   norm to get ray distance.
 
 Textures are collages of real photographs shipped inside scikit-image (no network), modulated by multi-scale noise
-so that every surface carries unique, non-repeating texture for SIFT. Shading is Lambertian and view-independent
-(fixed directional light plus ambient, no shadows), so a NeRF can represent it exactly.
+so that every surface carries unique, non-repeating texture for SIFT (the room layout repeats textures on purpose).
+Shading is Lambertian and view-independent (a directional light fixed per scene plus ambient, no shadows), so a NeRF
+can represent it exactly.
 """
 
 from __future__ import annotations
@@ -51,8 +53,8 @@ from nerfuser_ns.sim3 import decompose_sim3, invert_sim3, make_sim3, transform_p
 
 FORMAT_VERSION = 1
 _NO_BOTTOM = ("-y", "+x", "+y", "-x", "top")
-LayoutName = Literal["object-centric", "street", "drive"]
-LAYOUT_NAMES: tuple[str, ...] = ("object-centric", "street", "drive")
+LayoutName = Literal["object-centric", "street", "drive", "room"]
+LAYOUT_NAMES: tuple[str, ...] = ("object-centric", "street", "drive", "room")
 
 # Photographs stored inside the scikit-image package (checked to load with the network blocked, skimage 0.26).
 # Images that skimage fetches with pooch (e.g. "eagle", "kidney", "lily", "skin") are deliberately absent, and so
@@ -76,7 +78,7 @@ PHOTO_NAMES: tuple[str, ...] = (
 )
 
 _EPS = 1e-6  # minimum hit distance (metres): avoids self-intersection at the ray origin
-_LIGHT_DIR = (0.35, 0.25, 0.9)  # fixed directional light (normalised at use)
+_LIGHT_DIR = (0.35, 0.25, 0.9)  # default directional light (normalised at use)
 _AMBIENT = 0.45
 _DIFFUSE = 0.55
 
@@ -131,6 +133,8 @@ class Scene:
     """Per named object: axis-aligned (min, max) corners in world metres."""
     part_bounds: list[tuple[str, list[float], list[float]]] = field(default_factory=list)
     """Per solid part (box, sphere, cylinder, stand-alone quad): (object name, min, max), for free-space tests."""
+    light_dir: tuple[float, float, float] = _LIGHT_DIR
+    """Direction towards the directional light (normalised at use)."""
 
     @property
     def num_surfaces(self) -> int:
@@ -143,8 +147,15 @@ class Scene:
 class SceneBuilder:
     """Accumulates primitives and their procedurally generated textures, then freezes them into a :class:`Scene`."""
 
-    def __init__(self, rng: np.random.Generator, texels_per_metre: float = 128.0, max_texture_size: int = 2048):
+    def __init__(
+        self,
+        rng: np.random.Generator,
+        texels_per_metre: float = 128.0,
+        max_texture_size: int = 2048,
+        light_dir: tuple[float, float, float] = _LIGHT_DIR,
+    ):
         self.rng = rng
+        self.light_dir = light_dir
         self.texels_per_metre = texels_per_metre
         self.max_texture_size = max_texture_size
         self.quads: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []
@@ -158,13 +169,17 @@ class SceneBuilder:
         self.part_bounds: list[tuple[str, list[float], list[float]]] = []
 
     # -- textures ---------------------------------------------------------------------------------------------
-    def _texture(self, size_u_m: float, size_v_m: float, density: float | None = None, **kwargs) -> np.ndarray:
-        """Collage texture for a surface of the given size; ``density`` (texels per metre) overrides the default."""
+    def _texture(
+        self, size_u_m: float, size_v_m: float, density: float | None = None, half_turn: bool = False, **kwargs
+    ) -> np.ndarray:
+        """Collage texture for a surface of the given size; ``density`` (texels per metre) overrides the default;
+        ``half_turn`` makes it equal to itself turned by 180 degrees (:func:`half_turn_symmetric`)."""
         density = min(density or self.texels_per_metre, self.texels_per_metre)
         density = min(density, self.max_texture_size / max(size_u_m, size_v_m))
         w = max(8, int(round(size_u_m * density)))
         h = max(8, int(round(size_v_m * density)))
-        return make_collage_texture(self.rng, h, w, texels_per_metre=density, **kwargs)
+        texture = make_collage_texture(self.rng, h, w, texels_per_metre=density, **kwargs)
+        return half_turn_symmetric(texture) if half_turn else texture
 
     def _surface(self, obj: str, texture: np.ndarray) -> int:
         if obj not in self.object_names:
@@ -183,14 +198,20 @@ class SceneBuilder:
         self.object_bounds[obj] = (np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64))
 
     # -- primitives -------------------------------------------------------------------------------------------
-    def add_quad(self, obj: str, corner, edge_u, edge_v, part: bool = True, **texture_kwargs) -> None:
+    def add_quad(
+        self, obj: str, corner, edge_u, edge_v, part: bool = True, texture: np.ndarray | None = None, **texture_kwargs
+    ) -> np.ndarray:
+        """Adds a quad and returns its texture; ``texture`` (float [h, w, 3]) paints it with a given image, e.g. one an
+        earlier call returned, instead of a new collage."""
         corner, edge_u, edge_v = (np.asarray(a, dtype=np.float64) for a in (corner, edge_u, edge_v))
-        tex = self._texture(float(np.linalg.norm(edge_u)), float(np.linalg.norm(edge_v)), **texture_kwargs)
-        self.quads.append((corner, edge_u, edge_v, self._surface(obj, tex)))
+        if texture is None:
+            texture = self._texture(float(np.linalg.norm(edge_u)), float(np.linalg.norm(edge_v)), **texture_kwargs)
+        self.quads.append((corner, edge_u, edge_v, self._surface(obj, texture)))
         pts = corner + np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) @ np.stack([edge_u, edge_v])
         self._grow_bounds(obj, pts.min(0), pts.max(0))
         if part:
             self._part(obj, pts.min(0), pts.max(0))
+        return texture
 
     def add_box(
         self,
@@ -200,31 +221,37 @@ class SceneBuilder:
         yaw: float = 0.0,
         inward: bool = False,
         faces: Sequence[str] = ("-y", "+x", "+y", "-x", "top", "bottom"),
+        textures: dict[str, np.ndarray] | None = None,
         **texture_kwargs,
-    ) -> None:
+    ) -> dict[str, np.ndarray]:
         """Box with centre ``center``, extents ``size`` (x, y, z before yaw), rotated by ``yaw`` about +z.
 
         ``inward`` only matters for texture orientation (rooms are seen from inside); ``faces`` (box-local
         -y, +x, +y, -x, top, bottom) drops faces never seen, e.g. the bottom of a box standing on the floor.
+        Returns the faces' textures by face name; ``textures`` (such a dict) paints the faces it names with the
+        given images instead of new collages, e.g. to repeat a box exactly.
         """
+        textures = textures or {}
         c = np.asarray(center, dtype=np.float64)
         h = 0.5 * np.asarray(size, dtype=np.float64)
         R = yaw_rotation(yaw)
         ex, ey, ez = R[:, 0] * h[0], R[:, 1] * h[1], R[:, 2] * h[2]
         # Side faces: edge_u horizontal, edge_v up, so photographs stand upright; order picks the viewing side.
         sides = [(-ex - ey, 2 * ex), (ex - ey, 2 * ey), (ex + ey, -2 * ex), (-ex + ey, -2 * ey)]
+        quads = {}
         for face, (start, along) in zip(("-y", "+x", "+y", "-x"), sides, strict=True):
-            if face not in faces:
-                continue
             if inward:
                 start, along = start + along, -along
-            self.add_quad(obj, c + start - ez, along, 2 * ez, part=False, **texture_kwargs)
-        if "top" in faces:
-            self.add_quad(obj, c - ex - ey + ez, 2 * ex, 2 * ey, part=False, **texture_kwargs)
-        if "bottom" in faces:
-            self.add_quad(obj, c - ex - ey - ez, 2 * ex, 2 * ey, part=False, **texture_kwargs)
+            quads[face] = (c + start - ez, along, 2 * ez)
+        quads["top"] = (c - ex - ey + ez, 2 * ex, 2 * ey)
+        quads["bottom"] = (c - ex - ey - ez, 2 * ex, 2 * ey)
+        drawn = {}
+        for face, quad in quads.items():
+            if face in faces:
+                drawn[face] = self.add_quad(obj, *quad, part=False, texture=textures.get(face), **texture_kwargs)
         corners = c + np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)]) @ np.stack([ex, ey, ez])
         self._part(obj, corners.min(0), corners.max(0))
+        return drawn
 
     def add_sphere(self, obj: str, center, radius: float, **texture_kwargs) -> None:
         center = np.asarray(center, dtype=np.float64)
@@ -286,6 +313,7 @@ class SceneBuilder:
             bbox_max=all_hi,
             object_bounds={k: (v[0].tolist(), v[1].tolist()) for k, v in self.object_bounds.items()},
             part_bounds=list(self.part_bounds),
+            light_dir=tuple(float(v) for v in self.light_dir),
         )
 
 
@@ -384,6 +412,19 @@ def make_collage_texture(
     if tint is not None:
         canvas = canvas * np.asarray(tint, dtype=np.float32)
     return np.clip(canvas, 0.0, 1.0).astype(np.float32)
+
+
+def half_turn_symmetric(texture: Float[np.ndarray, "h w c"]) -> Float[np.ndarray, "h w c"]:
+    """``texture`` with its second half (in row-major order) replaced by its first half turned by 180 degrees, so
+    that the result equals itself turned by 180 degrees (``out == out[::-1, ::-1]``).
+
+    A quad ``corner + a * edge_u + b * edge_v`` centred on a vertical axis (a floor, a ceiling) painted with it looks
+    the same after a half turn about that axis: the turn maps texture coordinates (a, b) to (1 - a, 1 - b).
+    """
+    flat = texture.reshape(-1, texture.shape[-1]).copy()  # row-major: turning by 180 degrees reverses the order
+    n = flat.shape[0]
+    flat[n - n // 2 :] = flat[: n // 2][::-1]
+    return flat.reshape(texture.shape)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -554,7 +595,7 @@ def render_rays(
     if torch.any(norm <= 0):
         raise ValueError("render_rays: zero-length ray direction")
     d_unit = d / norm[:, None]
-    light = torch.tensor(_LIGHT_DIR, dtype=torch.float64)
+    light = torch.tensor(scene.light_dir, dtype=torch.float64)
     light = light / torch.linalg.norm(light)
     rgb_out, t_out, sid_out = [], [], []
     for i in range(0, o.shape[0], chunk_size):
@@ -715,9 +756,12 @@ class LayoutParams:
     hfov_deg: float = 65.0
     """Horizontal field of view of every camera."""
     num_captures: int = 3
-    """Number of training captures (street and drive; object-centric always has 2)."""
+    """Number of training captures (street and drive; object-centric and room always have 2)."""
     texels_per_metre: float = 128.0
     """Texture resolution (capped at 2048 texels per surface side)."""
+    symmetric: bool = False
+    """Room layout only (the others ignore it): leave out the room's one asymmetric element, its door, so that the
+    room is exactly symmetric under a half turn about its vertical axis (the registration becomes ambiguous)."""
 
     def validate(self) -> None:
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
@@ -731,6 +775,8 @@ class LayoutParams:
             raise ValueError(f"hfov_deg must be in [10, 120], got {self.hfov_deg}")
         if not 4.0 <= self.texels_per_metre <= 1024.0:
             raise ValueError(f"texels_per_metre must be in [4, 1024], got {self.texels_per_metre}")
+        if not isinstance(self.symmetric, (bool, np.bool_)):
+            raise ValueError(f"symmetric must be a boolean, got {self.symmetric!r}")
 
 
 def _rng(seed: int, stream: int) -> np.random.Generator:
@@ -758,15 +804,28 @@ def _capture_from_world(name: str, c2w: np.ndarray, intr: Intrinsics, rng: np.ra
     return Capture(name, c2w, intr, normalising_sim3(c2w[:, :3, 3], yaw), focus=focus)
 
 
+def _line_of_sight(scene: Scene, position: np.ndarray, target: np.ndarray) -> float:
+    """Distance (metres) the ray from ``position`` towards ``target`` runs before it hits the scene."""
+    d = np.asarray(target, dtype=np.float64) - position
+    return float(render_rays(scene, position, d / np.linalg.norm(d)).depth)
+
+
 def _sample_cameras(
-    scene: Scene, enclosure: str, n: int, propose: Callable[[int, int], tuple[np.ndarray, np.ndarray]]
+    scene: Scene,
+    enclosure: str,
+    n: int,
+    propose: Callable[[int, int], tuple[np.ndarray, np.ndarray]],
+    min_clearance: float = 0.0,
 ) -> np.ndarray:
-    """Draws ``propose(i, attempt) -> (position, target)`` until the position is free space (rejection sampling)."""
+    """Draws ``propose(i, attempt) -> (position, target)`` until the position is free space (rejection sampling)
+    and, with ``min_clearance`` (metres), the camera's line of sight runs that far before it hits anything."""
     positions, targets = [], []
     for i in range(n):
         for attempt in range(200):
             pos, tgt = propose(i, attempt)
-            if _valid_position(scene, pos, enclosure):
+            if _valid_position(scene, pos, enclosure) and (
+                min_clearance <= 0 or _line_of_sight(scene, pos, tgt) >= min_clearance
+            ):
                 break
         else:
             raise RuntimeError(f"could not place camera {i} in free space")
@@ -1000,17 +1059,92 @@ def make_drive(params: LayoutParams) -> SceneLayout:
     return SceneLayout("drive", params.seed, asdict(params), scene, captures, test)
 
 
+def make_room(params: LayoutParams) -> SceneLayout:
+    """Indoor room (8 x 6 x 3 m) of repeated structure that can fool a free SfM: it maps onto itself under the half
+    turn ``(x, y, z) -> (-x, -y, z)`` about its vertical axis, all but one element.
+
+    Opposite walls carry the same image (a feature on the north wall has an exact twin on the south wall, likewise
+    east and west), floor and ceiling textures equal themselves turned by 180 degrees (:func:`half_turn_symmetric`),
+    and the furnishing comes in identical pairs, a box and its image under the half turn: shelves against the long
+    walls, square floor-to-ceiling pillars, crates in the corners. The light shines from straight above (walls get
+    ambient light only), so that shading keeps the symmetry too. The one asymmetric element, a uniquely textured door
+    on the east wall off its centre (y ~ 0.9 m), makes the true registration decidable; ``params.symmetric`` leaves
+    it out (nothing else changes: the geometry, the other textures and the cameras stay the same).
+
+    Capture A stands in the west half (x in [-2.4, -0.5] m) and capture B in the east half (x in [0.5, 2.4] m), each
+    looking all around at the walls and furniture, so each sees its own half close up and the other one from afar.
+    Test views stand in the middle (|x| < 0.6 m), looking all around.
+    """
+    params.validate()
+    geo = _rng(params.seed, 0)
+    b = SceneBuilder(_rng(params.seed, 1), texels_per_metre=params.texels_per_metre, light_dir=(0.0, 0.0, 1.0))
+    room = (8.0, 6.0, 3.0)
+    hx, hy = room[0] / 2, room[1] / 2
+    b.add_quad("room", (-hx, -hy, 0.0), (room[0], 0, 0), (0, room[1], 0), half_turn=True, patch_size_m=(0.4, 1.2),
+               patches_per_m2=1.5, photo_names=("brick", "grass", "gravel", "coins", "coffee", "page"))
+    walls = b.add_box("room", (0, 0, room[2] / 2), room, inward=True, faces=("-y", "+x"), patch_size_m=(0.5, 1.5),
+                      patches_per_m2=1.0)
+    b.add_box("room", (0, 0, room[2] / 2), room, inward=True, faces=("+y", "-x"),
+              textures={"+y": walls["-y"], "-x": walls["+x"]})
+    b.add_quad("room", (-hx, -hy, room[2]), (room[0], 0, 0), (0, room[1], 0), part=False, half_turn=True,
+               patch_size_m=(0.5, 1.5), patches_per_m2=1.0)
+
+    def twins(obj: str, center, size, yaw: float, faces: Sequence[str] = _NO_BOTTOM) -> None:
+        """A box and its image under the half turn, with the same textures."""
+        looks = b.add_box(obj, center, size, yaw=yaw, faces=faces)
+        b.add_box(obj, np.multiply(center, (-1, -1, 1)), size, yaw=yaw + math.pi, faces=faces, textures=looks)
+
+    shelf = (1.6, 0.45, 2.0)
+    twins("shelves", (-1.8 + geo.uniform(-0.3, 0.3), hy - shelf[1] / 2 - 0.02, shelf[2] / 2), shelf, 0.0,
+          faces=("-y", "+x", "-x", "top"))
+    twins("pillars", (-1.3 + geo.uniform(-0.15, 0.15), -1.0 + geo.uniform(-0.15, 0.15), room[2] / 2),
+          (0.4, 0.4, room[2]), geo.uniform(0, math.pi / 2), faces=("-y", "+x", "+y", "-x"))
+    twins("crates", (-3.2 + geo.uniform(-0.1, 0.1), -2.2 + geo.uniform(-0.1, 0.1), 0.35), (0.7, 0.7, 0.7),
+          geo.uniform(-0.3, 0.3))
+    if not params.symmetric:  # drawn last: leaving it out changes nothing else
+        b.add_box("door", (hx - 0.04, 0.9 + geo.uniform(-0.2, 0.2), 1.05), (0.08, 1.0, 2.1),
+                  faces=("-y", "+y", "-x", "top"), patch_size_m=(0.15, 0.4), patches_per_m2=10.0,
+                  photo_names=("astronaut", "chelsea", "coffee", "rocket"))
+    scene = b.build()
+
+    intr = Intrinsics.from_fov(params.width, params.height, params.hfov_deg)
+    cams_rng = _rng(params.seed, 2)
+
+    def look_around(x_range: tuple[float, float], n: int):
+        phase = cams_rng.uniform(0, 2 * math.pi)
+
+        def propose(i: int, attempt: int):
+            pos = np.array([cams_rng.uniform(*x_range), cams_rng.uniform(-1.8, 1.8), cams_rng.uniform(1.2, 1.9)])
+            # Azimuth jitter grows with failed attempts so views blocked close by turn away.
+            az = phase + 2 * math.pi * i / n + cams_rng.normal(0, 0.15 + 0.1 * attempt)
+            el = math.radians(cams_rng.uniform(-20.0, 5.0))
+            return pos, pos + np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+        return propose
+
+    # Cameras stay more than the clearance (1.5 m) away from the door, so it never changes where they go.
+    captures = []
+    for name, x_range, half in (("capture_a", (-2.4, -0.5), "west"), ("capture_b", (0.5, 2.4), "east")):
+        c2w = _sample_cameras(scene, "room", params.num_views, look_around(x_range, params.num_views), 1.5)
+        captures.append(_capture_from_world(name, c2w, intr, cams_rng, f"{half} half of the room"))
+    test_c2w = _sample_cameras(scene, "room", params.num_test_views,
+                               look_around((-0.6, 0.6), params.num_test_views), 1.5)
+    test = Capture("test", test_c2w, intr, np.eye(4), focus="middle of the room, looking around")
+    return SceneLayout("room", params.seed, asdict(params), scene, captures, test)
+
+
 LAYOUTS: dict[str, Callable[[LayoutParams], SceneLayout]] = {
     "object-centric": make_object_centric,
     "street": make_street,
     "drive": make_drive,
+    "room": make_room,
 }
 
 
 def benchmark_params(layout: str, seed: int) -> dict:
     """The layout parameters our benchmarks' scenes use (``build_demo.py``, ``evaluate.py``): 192 x 144 images, 64
     views per capture and 12 test views; three captures on a street; the drive's 12 rig stops per block (96 views)
-    and 24 test views, 12 per gap."""
+    and 24 test views, 12 per gap; the room with its door (not ``symmetric``)."""
     params = dict(seed=seed, num_views=64, num_test_views=12, width=192, height=144)
     if layout in ("street", "drive"):
         params["num_captures"] = 3
@@ -1020,8 +1154,8 @@ def benchmark_params(layout: str, seed: int) -> dict:
 
 
 def make_layout(layout: str, **params) -> SceneLayout:
-    """Builds a layout by name (``"object-centric"``, ``"street"`` or ``"drive"``); keyword arguments are
-    :class:`LayoutParams`."""
+    """Builds a layout by name (``"object-centric"``, ``"street"``, ``"drive"`` or ``"room"``); keyword arguments
+    are :class:`LayoutParams`."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
     unknown = set(params) - set(LayoutParams.__dataclass_fields__)
@@ -1130,7 +1264,7 @@ def ground_truth_dict(layout: SceneLayout, supersample: int) -> dict:
         "layout": layout.layout,
         "seed": layout.seed,
         "params": dict(layout.params),
-        "render": {"supersample": supersample, "ambient": _AMBIENT, "diffuse": _DIFFUSE, "light_dir": _LIGHT_DIR},
+        "render": {"supersample": supersample, "ambient": _AMBIENT, "diffuse": _DIFFUSE, "light_dir": scene.light_dir},
         "conventions": {
             "world": "+z up, metres",
             "camera": "nerfstudio / OpenGL camera-to-world (camera looks along -z, +y up, +x right)",

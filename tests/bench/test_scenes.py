@@ -41,6 +41,11 @@ def drive() -> S.SceneLayout:
     return S.make_layout("drive", seed=0, num_views=32, num_test_views=6, width=32, height=24, texels_per_metre=8.0)
 
 
+@pytest.fixture(scope="module")
+def repeated_room() -> S.SceneLayout:
+    return S.make_layout("room", seed=0, **SMALL)
+
+
 def _file_digests(folder: Path) -> dict:
     return {
         str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
@@ -267,8 +272,10 @@ def test_visibility_detects_occlusion(room: S.SceneLayout):
     assert vis[1:].any(dim=1).all()
 
 
-def test_images_are_textured(room: S.SceneLayout, street: S.SceneLayout, drive: S.SceneLayout):
-    for lay in (room, street, drive):
+def test_images_are_textured(
+    room: S.SceneLayout, street: S.SceneLayout, drive: S.SceneLayout, repeated_room: S.SceneLayout
+):
+    for lay in (room, street, drive, repeated_room):
         for cap in lay.captures + [lay.test]:
             for c2w in cap.c2w_world[:3]:
                 out = S.render(lay.scene, c2w, cap.intrinsics)
@@ -281,8 +288,75 @@ def test_images_are_textured(room: S.SceneLayout, street: S.SceneLayout, drive: 
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Bad input
+# The room: repeated structure, symmetric under a half turn about its vertical axis but for its door
 # --------------------------------------------------------------------------------------------------------------
+
+HALF_TURN = np.diag([-1.0, -1.0, 1.0, 1.0])  # (x, y, z) -> (-x, -y, z): 180 degrees about the room's vertical axis
+
+
+def test_half_turn_symmetric_texture():
+    tex = np.random.default_rng(0).random((7, 5, 3))
+    out = S.half_turn_symmetric(tex)
+    np.testing.assert_array_equal(out, out[::-1, ::-1])
+    np.testing.assert_array_equal(out[:3], tex[:3])  # the first half is kept
+    np.testing.assert_array_equal(out[3, :2], tex[3, :2])
+
+
+def test_room_writes_and_regenerates(repeated_room: S.SceneLayout, tmp_path: Path):
+    out = S.write_scene(repeated_room, tmp_path / "room")
+    gt = json.loads((out / "ground_truth.json").read_text())
+    assert gt["layout"] == "room" and gt["params"]["symmetric"] is False
+    assert [c["name"] for c in gt["captures"]] == ["capture_a", "capture_b"]
+    assert gt["render"]["light_dir"] == [0.0, 0.0, 1.0]  # light from straight above: shading keeps the symmetry
+    assert set(gt["objects"]) == {"room", "shelves", "pillars", "crates", "door"}
+    for cap in gt["captures"]:
+        assert len(list((out / cap["path"] / "images").iterdir())) == SMALL["num_views"]
+    again = S.layout_from_ground_truth(out)
+    assert torch.equal(again.scene.texture_atlas, repeated_room.scene.texture_atlas)
+    np.testing.assert_array_equal(again.captures[1].c2w_world, repeated_room.captures[1].c2w_world)
+
+
+def test_room_captures_overlap(repeated_room: S.SceneLayout):
+    a, b = repeated_room.captures
+    assert (a.c2w_world[:, 0, 3] < 0).all() and (b.c2w_world[:, 0, 3] > 0).all()  # west half, east half
+    for one, other in ((a, b), (b, a)):
+        seen = S.visibility(repeated_room.scene, _surface_points(repeated_room, one), other.c2w_world,
+                            other.intrinsics)
+        assert 0.2 < seen.any(dim=1).float().mean() < 0.95  # overlapping, not the same
+    assert (np.abs(repeated_room.test.c2w_world[:, 0, 3]) < 0.6).all()  # test views in the middle
+
+
+def _half_turn_pairs(lay: S.SceneLayout):
+    """(render of a view, render of the view turned by 180 degrees about the room's vertical axis) for every view."""
+    for cap in lay.captures + [lay.test]:
+        for c2w in cap.c2w_world:
+            yield (S.render(lay.scene, c2w, cap.intrinsics, supersample=1),
+                   S.render(lay.scene, HALF_TURN @ c2w, cap.intrinsics, supersample=1))
+
+
+def test_symmetric_room_looks_the_same_after_a_half_turn(repeated_room: S.SceneLayout):
+    sym = S.make_layout("room", seed=0, symmetric=True, **SMALL)
+    assert "door" not in sym.scene.object_names
+    # Only the door goes: same cameras, same textures for everything else.
+    for c, d in zip(sym.captures + [sym.test], repeated_room.captures + [repeated_room.test], strict=True):
+        np.testing.assert_array_equal(c.c2w_world, d.c2w_world)
+    n = sym.scene.texture_atlas.shape[0]
+    assert torch.equal(sym.scene.texture_atlas, repeated_room.scene.texture_atlas[:n])
+    for view, turned in _half_turn_pairs(sym):
+        torch.testing.assert_close(turned.rgb, view.rgb, atol=1e-5, rtol=0)
+        torch.testing.assert_close(turned.depth, view.depth, atol=1e-9, rtol=1e-9)
+        assert torch.equal(turned.object_id, view.object_id)
+
+
+def test_room_door_breaks_the_symmetry(repeated_room: S.SceneLayout):
+    door = repeated_room.scene.object_index("door")
+    differs = []
+    for view, turned in _half_turn_pairs(repeated_room):
+        on_door = (view.object_id == door) | (turned.object_id == door)
+        diff = (view.rgb - turned.rgb).abs().amax(-1)
+        assert (diff[~on_door] < 1e-5).all()  # everything but the door has its twin
+        differs.append(float((diff > 0.1).float().mean()))
+    assert max(differs) > 0.02  # some view tells the room from its half turn
 
 
 @pytest.mark.parametrize(
@@ -296,6 +370,7 @@ def test_images_are_textured(room: S.SceneLayout, street: S.SceneLayout, drive: 
         (dict(hfov_deg=500.0), "hfov"),
         (dict(layout="street", num_captures=1), "num_captures"),
         (dict(layout="drive", num_views=12), "multiple of 8"),
+        (dict(layout="room", symmetric="yes"), "symmetric"),
         (dict(colour="red"), "unknown layout parameters"),
     ],
 )
