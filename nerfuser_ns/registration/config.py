@@ -156,9 +156,12 @@ class KnownGeometryConfig:
     min_hypothesis_fraction: float = 0.25
     """Hypotheses with fewer inliers than this fraction of the best one's are dropped before the self-check scores
     them (each scored hypothesis costs cross-renders)."""
+    hypothesis_views: int = 16
+    """Competing hypotheses are cross-rendered on this many views per direction (the same views for each: those
+    where their inlier counts differ most first) and scored by their worst view's NCC."""
     ambiguity_margin: float = 0.05
-    """Two hypotheses that both pass the self-check and score within this NCC of each other make the registration
-    ambiguous: it fails and names both scores instead of picking one."""
+    """When the runner-up passes the self-check's threshold and scores within this NCC of the best, the registration
+    is ambiguous: it fails and names both scores instead of picking one."""
     loss_scale: float = 0.01
     """Joint solve: soft-L1 scale of 3D residuals, relative to the points' distance from their cameras."""
 
@@ -240,8 +243,8 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
         (kg.vocabulary_words >= 2 and kg.candidate_views >= 1 and kg.exhaustive_max_pairs >= 0,
          "--known-geometry.vocabulary-words must be >= 2 and --known-geometry.candidate-views >= 1"),
         (0.0 < kg.ratio <= 1.0, "--known-geometry.ratio must be in (0, 1]"),
-        (kg.min_inliers >= 3 and kg.max_hypotheses >= 1, "--known-geometry.min-inliers must be >= 3 and "
-         "--known-geometry.max-hypotheses >= 1"),
+        (kg.min_inliers >= 3 and kg.max_hypotheses >= 1 and kg.hypothesis_views >= 1,
+         "--known-geometry.min-inliers must be >= 3, --known-geometry.max-hypotheses and hypothesis-views >= 1"),
         (0.0 <= kg.min_hypothesis_fraction <= 1.0 and kg.ambiguity_margin >= 0,
          "--known-geometry.min-hypothesis-fraction must be in [0, 1] and --known-geometry.ambiguity-margin >= 0"),
     ]

@@ -66,6 +66,7 @@ from nerfuser_ns.registration.self_check import (
     cross_render_check,
     failure_message,
     spanning_pairs,
+    view_nccs,
 )
 from nerfuser_ns.registration.sfm import check_registered_views, run_sfm
 from nerfuser_ns.renderers import NerfstudioRenderer, Renderer
@@ -284,22 +285,37 @@ def _views_by_support(feats: LiftedFeatures, index: np.ndarray, num_views: int) 
     return [int(v) for v in np.argsort(-counts, kind="stable") if counts[v] > 0]
 
 
+def _discriminating_views(feats: LiftedFeatures, index_per_hypothesis: Sequence[np.ndarray], num_views: int,
+                          count: int) -> list[int]:
+    """Up to ``count`` views of a NeRF where the hypotheses' inlier counts differ most (where one hypothesis explains
+    content the others do not), then the best-supported ones."""
+    counts = np.stack([np.bincount(feats.view[idx], minlength=num_views) for idx in index_per_hypothesis])
+    spread, support = counts.max(0) - counts.min(0), counts.sum(0)
+    order = np.lexsort((-support, -spread))
+    return [int(v) for v in order if support[v] > 0][:count]
+
+
 def _score_hypotheses(
     renderers: Sequence[Renderer], views: Sequence[ViewSet], feats: Sequence[LiftedFeatures], m: Matches3D,
     hyps: list[Hypothesis], intr: Intrinsics, config: RegistrationConfig,
 ) -> None:
-    """Cross-render self-check of each hypothesis of the pair (a, b), on the views richest in its inliers."""
+    """Each hypothesis of the pair (a, b) scored by cross-rendering, on the same views for every hypothesis (both
+    directions, those where their inliers differ most first): its worst view's NCC. Repeated structure makes a wrong
+    hypothesis look right in most views; it shows where the scene is not symmetric, in its worst view."""
     a, b = m.a, m.b
+    n = config.known_geometry.hypothesis_views
+    views_a = _discriminating_views(feats[a], [m.ia[h.inliers] for h in hyps], len(views[a].c2w), n)
+    views_b = _discriminating_views(feats[b], [m.ib[h.inliers] for h in hyps], len(views[b].c2w), n)
     for h in hyps:
-        order = {(0, 1): _views_by_support(feats[a], m.ia[h.inliers], len(views[a].c2w)),
-                 (1, 0): _views_by_support(feats[b], m.ib[h.inliers], len(views[b].c2w))}  # fmt: skip
-        check = cross_render_check([renderers[a], renderers[b]], [views[a], views[b]],
-                                   np.stack([np.eye(4), h.T]), [(0, 1)], intr, config, order)[0]  # fmt: skip
-        h.score = check.score
+        s_ab = view_nccs(views[a], renderers[b], sim3.invert_sim3(h.T), views_a, intr, config)
+        s_ba = view_nccs(views[b], renderers[a], h.T, views_b, intr, config)
+        scores = np.concatenate([s_ab, s_ba])
+        h.score = float(np.min(scores[np.isfinite(scores)])) if np.isfinite(scores).any() else float("nan")
 
 
 def _choose(hyps: list[Hypothesis], names: tuple[str, str], config: RegistrationConfig) -> int:
-    """The index of the best-scored hypothesis; an ambiguity (two passing hypotheses within the margin) is an error."""
+    """The index of the best-scored hypothesis; an ambiguity (the runner-up passes the self-check's threshold and
+    scores within the margin) is an error naming both scores."""
     if len(hyps) == 1:
         return 0
     scores = np.array([h.score if h.score is not None and np.isfinite(h.score) else -np.inf for h in hyps])
@@ -386,8 +402,9 @@ def register_known_geometry(
     timings["hypotheses"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    chosen = {pair: hyps[_choose(hyps, (names[pair[0]], names[pair[1]]), config)]
+    choice = {pair: _choose(hyps, (names[pair[0]], names[pair[1]]), config)
               for pair, hyps in hypotheses.items() if hyps}  # fmt: skip
+    chosen = {pair: hypotheses[pair][n] for pair, n in choice.items()}
     overlap = np.zeros((k, k), dtype=int)
     for (a, b), h in chosen.items():
         overlap[a, b] = overlap[b, a] = len(h.inliers)
@@ -439,7 +456,7 @@ def register_known_geometry(
             "hypotheses": [{"T_j_to_i": json_matrix(h.T), "inliers": len(h.inliers),
                             "self_check_ncc": None if h.score is None else json_float(h.score)}
                            for h in hypotheses[(a, b)]],
-            "chosen": None if (a, b) not in chosen else hypotheses[(a, b)].index(chosen[(a, b)]),
+            "chosen": choice.get((a, b)),
         } for (a, b), m in matches.items()],
         "tree": [[names[a], names[b]] for a, b in tree],
         "dropped_pairs": dropped,

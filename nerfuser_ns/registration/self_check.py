@@ -78,9 +78,20 @@ def _cross_direction(
     src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
     cfg: RegistrationConfig, acc_src: np.ndarray,
 ) -> float:
-    order = list(order)[: cfg.self_check_views]
+    scores = view_nccs(src, dst, T_src_to_dst, list(order)[: cfg.self_check_views], intrinsics, cfg, acc_src)
+    return float(np.median(scores[np.isfinite(scores)])) if np.isfinite(scores).any() else float("nan")
+
+
+def view_nccs(
+    src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
+    cfg: RegistrationConfig, acc_src: np.ndarray | None = None,
+) -> Float[np.ndarray, " n"]:
+    """NCC of each of ``src``'s views ``order`` against ``dst`` rendered at that view mapped by ``T_src_to_dst``
+    (NaN where they see too little in common)."""
+    order = list(order)
     if not order:
-        return float("nan")
+        return np.zeros(0)
+    acc_src = src.load_accumulation() if acc_src is None else acc_src
     poses = sim3.transform_poses(T_src_to_dst, src.c2w[order])
     scores = []
     for k, pose in zip(order, poses, strict=True):
@@ -92,8 +103,7 @@ def _cross_direction(
         if out.accumulation is not None:
             mask &= np.nan_to_num(out.accumulation[0]) >= 0.5
         scores.append(ncc(src.load_rgb(k), rgb, mask, cfg.ncc_downsample))
-    scores = np.array(scores)
-    return float(np.median(scores[np.isfinite(scores)])) if np.isfinite(scores).any() else float("nan")
+    return np.array(scores)
 
 
 def cross_render_check(
