@@ -13,6 +13,7 @@ self-check -> the record.
 
 from __future__ import annotations
 
+import inspect
 import math
 import time
 from collections.abc import Sequence
@@ -362,6 +363,9 @@ def register_known_geometry(
     """
     work_dir = Path(work_dir)
     ref, min_views, intr = _check_inputs(renderers, config)
+    for r in renderers:  # before anything is rendered
+        if "depth" not in inspect.signature(r.render).parameters:
+            raise RegistrationError(f"{r.name}: its renderer gives no depth; use --mode sfm")
     kg = config.known_geometry
     names = [r.name for r in renderers]
     k = len(renderers)

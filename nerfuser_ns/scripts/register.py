@@ -126,7 +126,8 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         row = [
             n["name"], str(v["rendered"]), str(v["kept"]), str(v["registered"]), _fmt(n["scale_to_reference"], ".4g"),
             _fmt(n["scale_spread"], ".2e"), _fmt(res["rotation_deg_median"], ".3f"), _fmt(res["centre_median"], ".2e"),
-            n["estimator"] + (" + BA" if n.get("refinement_change") and i != record["reference"]["index"] else ""),
+            n["estimator"] + (" + BA" if (record.get("refinement") or {}).get("used")
+                              and i != record["reference"]["index"] else ""),
         ]
         table.add_row(*row)
     console.print(table)
@@ -149,6 +150,18 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
             )
         else:
             console.print(f"[yellow]rigid-set bundle adjustment not used: {ref.get('reason', 'failed')}[/]")
+    kg = record.get("known_geometry")
+    if kg is not None:
+        for p in kg["pairs"]:
+            hyps = ", ".join(f"{h['inliers']} inliers" + ("" if h["self_check_ncc"] is None
+                                                          else f" (NCC {h['self_check_ncc']:.2f})")
+                             for h in p["hypotheses"])  # fmt: skip
+            console.print(f"known geometry {' / '.join(p['names'])}: {p['matches']} 3D matches over "
+                          f"{p['view_pairs']} view pairs; hypotheses: {hyps or 'none'}")  # fmt: skip
+        solve = kg["joint_solve"]
+        if solve.get("used"):
+            console.print(f"joint solve: {solve['matches']} matches, relative residual RMS "
+                          f"{solve['rms_relative_before']:.4f} -> {solve['rms_relative_after']:.4f}")  # fmt: skip
     t, made = record["timings_s"], record.get("compute_timings_s", {})
     reused = record.get("reused", {})
     sfm_reused = reused.get("sfm", False)
