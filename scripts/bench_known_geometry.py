@@ -135,7 +135,8 @@ def write(cfg: BenchKnownGeometry, results: list[dict]) -> None:
     write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
     lines = [f"# Registration modes: SfM (the paper's) vs known geometry (ours) ({report['date']})", "",
              f"`{report['command']}` on {report['machine']['platform']}, {report['machine']['cpus']} CPUs.", "",
-             "| case | mode | renders / NeRF | NeRF | r_err (deg) | t_err | s_err | failure | render s | after render s |",
+             "| case | mode | renders / NeRF | NeRF | r_err (deg) | t_err | s_err | failure | render s "
+             "| after render s |",
              "| --- | --- | ---: | --- | ---: | ---: | ---: | --- | ---: | ---: |"]  # fmt: skip
     for r in results:
         if r["status"] != "ok":
