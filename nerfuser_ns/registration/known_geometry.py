@@ -1,12 +1,13 @@
 """Registration on known geometry (ours, beside the paper's SfM): every render's pose is known in its NeRF's frame and
 every NeRF renders depth, so keypoints lift to 3D without an SfM.
 
-Per NeRF (:func:`lift_keypoints`): SIFT keypoints of its renders (pycolmap), lifted to 3D in the NeRF's frame,
-``X = c + d * r(x)`` with the camera centre ``c``, the unit ray ``r`` through keypoint ``x`` and the rendered ray
-distance ``d``; kept only where that depth is reliable: the render is opaque and has no depth edge around the keypoint
-(:func:`reliable_depth`), and other views of the same NeRF render the same surface there (:func:`multiview_agreement`:
-the point's projection into view ``j`` has rendered depth within ``tol * |X - c_j|`` of ``|X - c_j|``). The NeRF's own
-geometry is fixed by construction: repeated structure inside one NeRF cannot fold it.
+Per NeRF (:func:`lift_keypoints`): SIFT keypoints of its renders (COLMAP's extraction, as in the SfM mode), lifted
+to 3D in the NeRF's frame, ``X = c + d * r(x)`` with the camera centre ``c``, the unit ray ``r`` through keypoint
+``x`` and the rendered ray distance ``d``; kept only where that depth is reliable: the render is opaque and has no
+depth edge around the keypoint (:func:`reliable_depth`), and other views of the same NeRF render the same surface
+there (:func:`multiview_agreement`: the point's projection into view ``j`` has rendered depth within
+``tol * |X - c_j|`` of ``|X - c_j|``). The NeRF's own geometry is fixed by construction: repeated structure inside
+one NeRF cannot fold it.
 
 Across NeRFs: candidate view pairs (:mod:`.retrieval`), mutual nearest neighbours with Lowe's ratio test
 (:func:`match_descriptors`), giving 3D-3D matches; SIM(3) hypotheses by LO-RANSAC (pycolmap's
@@ -18,13 +19,15 @@ distances, so near and far points weigh alike).
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pycolmap
+import torch
 from jaxtyping import Bool, Float, Int
-from PIL import Image
 from scipy.ndimage import maximum_filter, minimum_filter
 from scipy.optimize import least_squares
 
@@ -119,20 +122,15 @@ def match_descriptors(
     """Mutual nearest neighbours (L2 on L2-normalised descriptors) that pass Lowe's ratio test both ways."""
     if len(da) < 2 or len(db) < 2:
         return np.zeros(0, int), np.zeros(0, int)
-    d2 = np.maximum(2.0 - 2.0 * (da @ db.T), 0.0)
-    ab = np.argpartition(d2, 1, axis=1)[:, :2]  # two smallest per row, unordered
-    ab_d = np.take_along_axis(d2, ab, axis=1)
-    order = np.argsort(ab_d, axis=1)
-    ab, ab_d = np.take_along_axis(ab, order, axis=1), np.take_along_axis(ab_d, order, axis=1)
-    ba = np.argpartition(d2, 1, axis=0)[:2].T
-    ba_d = np.take_along_axis(d2.T, ba, axis=1)
-    order = np.argsort(ba_d, axis=1)
-    ba, ba_d = np.take_along_axis(ba, order, axis=1), np.take_along_axis(ba_d, order, axis=1)
-    ia = np.arange(len(da))
+    sim = torch.from_numpy(np.ascontiguousarray(da, dtype=np.float32)) @ torch.from_numpy(
+        np.ascontiguousarray(db, dtype=np.float32)).T  # fmt: skip
+    d2_ab, ab = (2.0 - 2.0 * sim).clamp_min(0.0).topk(2, dim=1, largest=False)  # sorted: nearest first
+    d2_ba, ba = (2.0 - 2.0 * sim.T).clamp_min(0.0).topk(2, dim=1, largest=False)
+    ia = torch.arange(len(da))
     ib = ab[:, 0]
     r2 = ratio**2  # distances are squared
-    keep = (ba[ib, 0] == ia) & (ab_d[:, 0] <= r2 * ab_d[:, 1]) & (ba_d[ib, 0] <= r2 * ba_d[ib, 1])
-    return ia[keep], ib[keep]
+    keep = (ba[ib, 0] == ia) & (d2_ab[:, 0] <= r2 * d2_ab[:, 1]) & (d2_ba[ib, 0] <= r2 * d2_ba[ib, 1])
+    return ia[keep].numpy(), ib[keep].numpy()
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -156,41 +154,43 @@ class LiftedFeatures:
     """Keypoints detected, with reliable depth, and multi-view consistent."""
 
 
-def _extractor(cfg: KnownGeometryConfig, num_threads: int) -> pycolmap.FeatureExtractor:
+def extract_sift(
+    views: ViewSet, image_ids: Sequence[int], cfg: KnownGeometryConfig, num_threads: int = -1, verbose: bool = False
+) -> list[tuple[Float[np.ndarray, "m 2"], Float[np.ndarray, "m 128"]]]:
+    """SIFT keypoints (x, y) and L2-normalised float descriptors of a NeRF's renders ``image_ids``: COLMAP's
+    extraction (as the SfM mode runs it, in parallel over images) into a scratch database."""
+    root = views.folder.parent
+    names = [views.image_names[k] for k in image_ids]
     options = pycolmap.FeatureExtractionOptions()
-    options.use_gpu = False  # COLMAP's GPU SIFT needs OpenGL / CUDA builds; the renders are small
+    options.use_gpu = False  # as the SfM mode: COLMAP's GPU SIFT needs an OpenGL / CUDA build
     options.num_threads = num_threads
     options.sift.max_num_features = cfg.max_num_features
-    return pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
-
-
-def extract_sift(
-    images: Sequence[np.ndarray], cfg: KnownGeometryConfig, num_threads: int = -1
-) -> list[tuple[Float[np.ndarray, "m 2"], Float[np.ndarray, "m 128"]]]:
-    """SIFT keypoints (x, y) and L2-normalised float descriptors of 8-bit RGB images."""
-    extractor = _extractor(cfg, num_threads)
+    pycolmap.logging.minloglevel = 0 if verbose else 2  # glog: 0 INFO, 1 WARNING, 2 ERROR
     out = []
-    for image in images:
-        gray = np.asarray(Image.fromarray(image).convert("L"))
-        keypoints, descriptors = extractor.extract_from_uint8_array(np.ascontiguousarray(gray))
-        xy = np.array([(kp.x, kp.y) for kp in keypoints], dtype=np.float64).reshape(-1, 2)
-        d = np.asarray(descriptors.data, dtype=np.float32).reshape(-1, 128)
-        out.append((xy, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)))
+    with tempfile.TemporaryDirectory(prefix=".sift-", dir=root) as scratch:
+        database = Path(scratch) / "features.db"
+        pycolmap.extract_features(database, root, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  extraction_options=options, device=pycolmap.Device.cpu)  # fmt: skip
+        with pycolmap.Database.open(database) as db:
+            for name in names:
+                image_id = db.read_image_with_name(name).image_id
+                xy = np.asarray(db.read_keypoints(image_id), dtype=np.float64).reshape(-1, 6)[:, :2]
+                d = np.asarray(db.read_descriptors(image_id).data, dtype=np.float32).reshape(-1, 128)
+                out.append((xy, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)))
     return out
 
 
 def lift_keypoints(
-    views: ViewSet, intrinsics: Intrinsics, cfg: KnownGeometryConfig, num_threads: int = -1
+    views: ViewSet, intrinsics: Intrinsics, cfg: KnownGeometryConfig, num_threads: int = -1, verbose: bool = False
 ) -> LiftedFeatures:
     """SIFT keypoints of a NeRF's kept renders lifted to 3D with its rendered depth, reliable ones only."""
     kept = np.flatnonzero(views.kept)
     depth, acc = views.load_depth(), views.load_accumulation()
     reliable = np.stack([reliable_depth(depth[k], acc[k], cfg.min_accumulation, cfg.max_depth_step)
                          for k in range(len(depth))])  # fmt: skip
-    images = [np.asarray(Image.open(views.folder / "images" / f"{k:05d}.png").convert("RGB")) for k in kept]
     parts = {"view": [], "xy": [], "desc": []}
     detected = 0
-    for k, (xy, desc) in zip(kept, extract_sift(images, cfg, num_threads), strict=True):
+    for k, (xy, desc) in zip(kept, extract_sift(views, kept, cfg, num_threads, verbose), strict=True):
         detected += len(xy)
         rows, cols = _pixel(xy, depth.shape[1:])
         ok = reliable[k, rows, cols]
@@ -301,9 +301,13 @@ def sim3_hypotheses(
         if mask.sum() < cfg.min_inliers:
             break
         T = sim3.to_homogeneous(np.asarray(result["tgt_from_src"].matrix(), dtype=np.float64))
-        # every match the hypothesis explains, not only RANSAC's inliers among the remaining ones
-        res = np.linalg.norm(sim3.transform_points(T, points_b) - points_a, axis=-1)
-        inliers = np.flatnonzero(res <= max_error)
+        # every match the hypothesis explains, not only RANSAC's inliers among the remaining ones, and the transform
+        # refitted to all of them: competing hypotheses are then equally precise when the self-check compares them
+        inliers = np.flatnonzero(np.linalg.norm(sim3.transform_points(T, points_b) - points_a, axis=-1) <= max_error)
+        refit = pycolmap.estimate_sim3d(np.ascontiguousarray(points_b[inliers]),
+                                        np.ascontiguousarray(points_a[inliers]))  # fmt: skip
+        if refit is not None:
+            T = sim3.to_homogeneous(np.asarray(refit.matrix(), dtype=np.float64))
         if found and len(inliers) < cfg.min_hypothesis_fraction * len(found[0].inliers):
             break
         if _distinct(T, found, centre, 10 * max_error):

@@ -378,7 +378,7 @@ def register_known_geometry(
 
     t0 = time.perf_counter()
     with console.status("known geometry: SIFT keypoints lifted to 3D with the rendered depth"):
-        feats = [lift_keypoints(vs, intr, kg, config.sfm.num_threads) for vs in views]
+        feats = [lift_keypoints(vs, intr, kg, config.sfm.num_threads, config.sfm.verbose) for vs in views]
     for vs, f in zip(views, feats, strict=True):
         if len(f.view) < kg.min_inliers:
             raise RegistrationError(

@@ -14,7 +14,7 @@ import numpy as np
 from jaxtyping import Float, Int
 from sklearn.cluster import KMeans
 
-MAX_TRAINING_DESCRIPTORS = 20000
+MAX_TRAINING_DESCRIPTORS = 10000
 """k-means runs on at most this many descriptors (a seeded sample)."""
 
 
