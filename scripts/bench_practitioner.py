@@ -78,7 +78,7 @@ class BenchPractitioner:
     """Images in, registration and blend out, with every tool at its defaults."""
 
     cases: list[str] = field(default_factory=lambda: ["object-centric:1", "drive:1", "street:1"])
-    """Cases as layout:seed (layouts: object-centric, street, drive)."""
+    """Cases as layout:seed (layouts: object-centric, street, drive, room)."""
     root: Path = Path("outputs/practitioner")
     """Work folder (one sub-folder per case; every stage cached there)."""
     width: int = 320

@@ -27,7 +27,8 @@ def build_vocabulary(
     sample = descriptors if len(descriptors) <= MAX_TRAINING_DESCRIPTORS else descriptors[
         rng.choice(len(descriptors), MAX_TRAINING_DESCRIPTORS, replace=False)]  # fmt: skip
     words = max(1, min(words, len(np.unique(sample, axis=0))))
-    kmeans = KMeans(n_clusters=words, n_init=1, max_iter=20, random_state=seed).fit(sample)
+    # random initial centres: k-means++ costs more than the whole fit here, and retrieval does not need its quality
+    kmeans = KMeans(n_clusters=words, init="random", n_init=1, max_iter=20, random_state=seed).fit(sample)
     return kmeans.cluster_centers_.astype(np.float32)
 
 
