@@ -232,7 +232,7 @@ class Matches3D:
     """Candidate view pairs matched."""
 
 
-@dataclass
+@dataclass(eq=False)  # identity: two hypotheses are never "equal" by their arrays
 class Hypothesis:
     """One SIM(3) hypothesis ``T_b->a`` of a NeRF pair, with the matches that support it."""
 

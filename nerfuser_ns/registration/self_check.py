@@ -84,25 +84,33 @@ def _cross_direction(
 
 def view_nccs(
     src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
-    cfg: RegistrationConfig, acc_src: np.ndarray | None = None,
+    cfg: RegistrationConfig, acc_src: np.ndarray | None = None, reduce: int = 1,
 ) -> Float[np.ndarray, " n"]:
     """NCC of each of ``src``'s views ``order`` against ``dst`` rendered at that view mapped by ``T_src_to_dst``
-    (NaN where they see too little in common)."""
+    (NaN where they see too little in common).
+
+    ``reduce`` > 1 renders ``dst`` at 1/reduce of the size (reduce^2 times fewer rays) and compares it with ``src``'s
+    renders block-averaged by that factor: the NCC block-averages by ``cfg.ncc_downsample`` anyway.
+    """
     order = list(order)
     if not order:
         return np.zeros(0)
     acc_src = src.load_accumulation() if acc_src is None else acc_src
     poses = sim3.transform_poses(T_src_to_dst, src.c2w[order])
+    big = intrinsics
+    small = big if reduce <= 1 else Intrinsics(big.fx / reduce, big.fy / reduce, big.cx / reduce, big.cy / reduce,
+                                               big.width // reduce, big.height // reduce)  # fmt: skip
     scores = []
     for k, pose in zip(order, poses, strict=True):
-        out = dst.render(pose[None], intrinsics)
+        out = dst.render(pose[None], small)
         rgb = np.nan_to_num(np.asarray(out.rgb[0], dtype=np.float32))
         # Compare what the PNG stored, as the SfM saw it.
         rgb = to_uint8(rgb).astype(np.float32) / 255
-        mask = acc_src[k] >= 0.5
+        mask = _blocks(acc_src[k], reduce) >= 0.5
         if out.accumulation is not None:
             mask &= np.nan_to_num(out.accumulation[0]) >= 0.5
-        scores.append(ncc(src.load_rgb(k), rgb, mask, cfg.ncc_downsample))
+        own = np.stack([_blocks(c, reduce) for c in np.moveaxis(src.load_rgb(k), -1, 0)], axis=-1)
+        scores.append(ncc(own, rgb, mask, max(1, cfg.ncc_downsample // reduce)))
     return np.array(scores)
 
 
