@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shutil
 import statistics
 import sys
 import time
@@ -66,6 +67,9 @@ class BenchKnownGeometry:
     """Skip cases already in the output."""
     device: str = field(default_factory=runs.default_device)
     """Device the nerfstudio runs render on."""
+    fresh_sfm: bool = True
+    """Scene cases: run the SfM again rather than reuse a cached one, so both modes' steps after rendering are timed
+    in the same run (renders are reused by both: their time is the time they took when made)."""
 
 
 def _gt_case(spec: str):
@@ -184,6 +188,8 @@ def main(cfg: BenchKnownGeometry) -> None:
                 if kind == "scene":
                     renderers, nerf_to_world = _gt_case(source)
                     work = cfg.output.parent / "known_geometry_work" / name
+                    if mode == "sfm" and cfg.fresh_sfm:
+                        shutil.rmtree(work / "sfm", ignore_errors=True)
                 else:
                     renderers, nerf_to_world = _practitioner_case(source, cfg.device)
                     work = source / "registration_work"  # the practitioner benchmark's own renders are reused
