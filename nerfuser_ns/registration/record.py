@@ -278,6 +278,26 @@ class RegistrationResult:
                                     f"({type(e).__name__}: {e})") from None  # fmt: skip
 
 
+def _pair_results(
+    T_to_ref: Float[np.ndarray, "k 4 4"], overlap: np.ndarray, checks: Sequence[CrossRenderCheck],
+    config: RegistrationConfig,
+) -> list[PairResult]:
+    """Every NeRF pair (i < j): its relative transform, its overlap and its self-check when it was checked."""
+    check_of = {(c.i, c.j): c for c in checks}
+    pairs = []
+    for i in range(len(T_to_ref)):
+        for j in range(i + 1, len(T_to_ref)):
+            c = check_of.get((i, j))
+            pairs.append(PairResult(
+                i, j, _matrix(sim3.relative_sim3(T_to_ref[i], T_to_ref[j])), int(overlap[i, j]),
+                None if c is None else PairCheck(
+                    json_float(c.score), json_float(c.ncc_i_in_j), json_float(c.ncc_j_in_i), c.views,
+                    config.ncc_threshold, passed(c, config),
+                ),
+            ))  # fmt: skip
+    return pairs
+
+
 def build_result(
     *,
     renderers: Sequence[Renderer],
@@ -296,18 +316,7 @@ def build_result(
     """The result of the steps' outputs: ``T_to_C`` / ``T_to_ref`` are the final transforms (refined when refined),
     ``timings`` this run's seconds per step (render, features, matching, mapping, solve, self_check)."""
     k = len(renderers)
-    check_of = {(c.i, c.j): c for c in checks}
-    pairs = []
-    for i in range(k):
-        for j in range(i + 1, k):
-            c = check_of.get((i, j))
-            pairs.append(PairResult(
-                i, j, _matrix(sim3.relative_sim3(T_to_ref[i], T_to_ref[j])), int(overlap[i, j]),
-                None if c is None else PairCheck(
-                    json_float(c.score), json_float(c.ncc_i_in_j), json_float(c.ncc_j_in_i), c.views,
-                    config.ncc_threshold, passed(c, config),
-                ),
-            ))  # fmt: skip
+    pairs = _pair_results(T_to_ref, overlap, checks, config)
     nerfs = []
     for i, (r, vs, ne) in enumerate(zip(renderers, views, estimates, strict=True)):
         est = ne.estimate
@@ -372,18 +381,7 @@ def build_known_geometry_result(
     ``overlap`` the inlier matches per NeRF pair, ``known_geometry`` the mode's own summary (stored as is)."""
     k = len(renderers)
     ref = config.reference % k
-    check_of = {(c.i, c.j): c for c in checks}
-    pairs = []
-    for i in range(k):
-        for j in range(i + 1, k):
-            c = check_of.get((i, j))
-            pairs.append(PairResult(
-                i, j, _matrix(sim3.relative_sim3(T_to_ref[i], T_to_ref[j])), int(overlap[i, j]),
-                None if c is None else PairCheck(
-                    json_float(c.score), json_float(c.ncc_i_in_j), json_float(c.ncc_j_in_i), c.views,
-                    config.ncc_threshold, passed(c, config),
-                ),
-            ))  # fmt: skip
+    pairs = _pair_results(T_to_ref, overlap, checks, config)
     change = sim3.sim3_errors(T_to_ref, T_initial)
     none = Residuals(None, None, None, None)
     nerfs = []
