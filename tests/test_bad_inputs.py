@@ -359,6 +359,14 @@ def score_wrong_count(ws):
                 ["--gt-transforms has 1 files for 2 NeRFs"])  # fmt: skip
 
 
+def score_no_reference(ws):
+    """A hand-written registration without "reference" whose transforms are none of them identity."""
+    reg = ws.write("reg/hand.json", json.dumps({"kind": "nerfuser_registration", "nerfs": [
+        {"name": n, "config": str(c), "T_to_reference": T_B.tolist()} for n, c in (("a", ws.a), ("b", ws.b))]}))
+    gts = [score_gt(ws, np.eye(4), "a"), score_gt(ws, T_B, "b")]
+    return Call([str(reg), "--gt-transforms", *map(str, gts)], ["names no reference NeRF", '"reference"'])
+
+
 # ----------------------------------------------------------------------------------------------------------------------
 # The table
 
@@ -414,6 +422,7 @@ ROWS = [
     pytest.param(Row("score", score_sheared_truth), id="score-sheared-gt-transform"),
     pytest.param(Row("score", score_bracketed_truth), id="score-gt-transform-bad-last-row-brackets-kept"),
     pytest.param(Row("score", score_wrong_count), id="score-wrong-number-of-gt-transforms"),
+    pytest.param(Row("score", score_no_reference), id="score-hand-written-registration-without-reference"),
 ]
 
 

@@ -307,6 +307,25 @@ def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderer
         ScoreCommand(out, gt_transforms=gt, output=out).main(console)
 
 
+def test_scoring_a_hand_written_registration_with_mixed_3x4_and_4x4_truth(tmp_path):
+    """The minimal registration a user writes (no "reference": the identity entry is it) against a 3x4 and a 4x4
+    ground-truth file: both shapes are SIM(3)s, and the scores are right."""
+    W_b = sim3.make_sim3(sim3.so3_exp(np.array([0.0, 0.0, 0.4])), np.array([1.0, 2.0, 3.0]), 1.5)
+    W_a = sim3.make_sim3(np.eye(3), np.array([0.0, 1.0, 0.0]), 2.0)
+    nerfs = [{"name": "b", "config": "b/config.yml", "T_to_reference": (np.linalg.inv(W_a) @ W_b).tolist()},
+             {"name": "a", "config": "a/config.yml", "T_to_reference": np.eye(4).tolist()}]  # fmt: skip
+    path = tmp_path / "hand.json"
+    path.write_text(json.dumps({"kind": "nerfuser_registration", "nerfs": nerfs}))
+    gt = [tmp_path / "b.json", tmp_path / "a.json"]
+    gt[0].write_text(json.dumps({"nerf_to_world": W_b[:3].tolist()}))  # 3x4
+    gt[1].write_text(json.dumps(W_a.tolist()))  # 4x4, bare
+    console = Console(record=True, width=200)
+    scored = ScoreCommand(path, gt_transforms=gt).main(console)
+    assert "in the frame of a" in console.export_text()
+    g = scored["nerfs"][0]["ground_truth"]
+    assert g["r_err_deg"] < 1e-6 and g["t_err"] < 1e-9 and g["s_err"] < 1e-9 and not scored["ground_truth"]["failure"]
+
+
 def test_rerun_reuses_renders_and_sfm(oc_layout, oc_renderers, oc_record, work):
     rec = score_registration(reg.register(oc_renderers, small_config(), work), gt_of(oc_layout))
     assert all(n["renders_reused"] for n in rec["nerfs"]) and rec["sfm"]["reused"]

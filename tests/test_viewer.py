@@ -507,21 +507,25 @@ class Command:
         return "".join(self.lines)
 
 
-@pytest.fixture(scope="module")
-def fused_run(fusion_spec) -> Path:
-    """The spec fused by ns-train nerfuser (a run folder whose config.yml ns-viewer loads)."""
-    out = fusion_spec.parent / "outputs"
+def fuse(spec: Path, experiment: str) -> Path:
+    """`ns-train nerfuser` on a spec: the fused run's config.yml, which ns-viewer loads."""
+    out = spec.parent / "outputs"
     proc = subprocess.run(
-        [str(BIN / "ns-train"), "nerfuser", "--data", str(fusion_spec), "--output-dir", str(out)]
-        + ["--experiment-name", "fused", "--timestamp", "run"],
-        cwd=fusion_spec.parent,
+        [str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir", str(out)]
+        + ["--experiment-name", experiment, "--timestamp", "run"],
+        cwd=spec.parent,
         env={**os.environ, "OMP_NUM_THREADS": "1"},
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return out / "fused" / "nerfuser" / "run" / "config.yml"
+    return out / experiment / "nerfuser" / "run" / "config.yml"
+
+
+@pytest.fixture(scope="module")
+def fused_run(fusion_spec) -> Path:
+    return fuse(fusion_spec, "fused")
 
 
 def page_text(browser: HeadlessChromium) -> str:
@@ -596,6 +600,27 @@ def test_viewer_opens_a_registration_file_without_test_images(fusion_spec):
     finally:
         running.stop()
     assert port_closed(running.port)
+
+
+def test_ns_viewer_opens_a_fused_run_without_test_images(fusion_spec):
+    """A run fused from the user's own runs alone (no test_data): ns-viewer reads every attribute of the pipeline,
+    the eval loader included, and must still serve the scene."""
+    spec = write_fusion_spec(fusion_spec.parent / "fusion_no_test.json", RUNS, registration="registration.json")
+    config = fuse(spec, "fused_no_test")
+    port = free_port()
+    command = Command(
+        [str(BIN / "ns-viewer"), "--load-config", str(config)]
+        + ["--viewer.websocket-host", "127.0.0.1", "--viewer.websocket-port", str(port)],
+        config.parent,
+    )
+    try:
+        wait_for(lambda: command.line("[") and _get(f"http://127.0.0.1:{port}/"), 180, "ns-viewer to serve", 0.5)
+        wait_for(lambda: any("disabled local writer" in line for line in command.lines), 120, "ns-viewer setup", 0.5)
+    finally:
+        out = command.stop()
+    assert command.proc.returncode in (0, -signal.SIGTERM), out[-3000:]
+    assert "Traceback" not in out and "no test images" not in out, out[-3000:]
+    assert port_closed(port)
 
 
 def test_bad_input_is_one_line(tmp_path):

@@ -52,13 +52,24 @@ def ground_truth_errors(
     return out
 
 
+def reference_index(record: dict) -> int:
+    """The reference NeRF of a record: as recorded, or (a hand-written file) the first whose transform is identity."""
+    if "reference" in record:
+        return int(record["reference"]["index"])
+    identity = [i for i, n in enumerate(record["nerfs"]) if np.allclose(n["T_to_reference"], np.eye(4), atol=1e-9)]
+    if not identity:
+        raise RegistrationError("the registration names no reference NeRF and none of its transforms is identity; "
+                                'add "reference": {"index": i, "name": "..."}')  # fmt: skip
+    return identity[0]
+
+
 def score_registration(record: dict, gt_nerf_to_world: Sequence[np.ndarray]) -> dict:
     """A copy of ``record`` with ``ground_truth`` errors per NeRF and overall (``failure``: any NeRF failed)."""
     nerfs = record["nerfs"]
     if len(gt_nerf_to_world) != len(nerfs):
         raise RegistrationError(f"ground truth given for {len(gt_nerf_to_world)} NeRFs, the registration has "
                                 f"{len(nerfs)}")  # fmt: skip
-    ref = int(record["reference"]["index"])
+    ref = reference_index(record)
     T_to_ref = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in nerfs])
     errors = ground_truth_errors(T_to_ref, gt_nerf_to_world, ref)
     scored = copy.deepcopy(record)
@@ -111,7 +122,7 @@ def read_gt_transforms(paths: Sequence[Path]) -> list[np.ndarray]:
 
 
 def print_scores(record: dict, console: Console) -> None:
-    table = Table(title=f"Ground truth, in the frame of {record['reference']['name']}")
+    table = Table(title=f"Ground truth, in the frame of {record['nerfs'][reference_index(record)]['name']}")
     for col in ("NeRF", "r_err (deg)", "t_err", "s_err", "ok"):
         table.add_column(col, justify="left" if col == "NeRF" else "right")
     for n in record["nerfs"]:
