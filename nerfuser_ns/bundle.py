@@ -9,8 +9,9 @@ estimate.
 
 Unknowns: ``T_i`` (NeRF i -> reference frame) for every NeRF but the reference (its cameras fix the gauge, scale
 included) and the 3D points seen by at least two NeRFs (a point seen by one NeRF only moves with that NeRF and says
-nothing about the transforms). Residuals: reprojection errors in pixels under a robust loss, minimised by
-``scipy.optimize.least_squares`` with a sparse Jacobian.
+nothing about the transforms). Residuals: reprojection errors in pixels (and, where each observation's distance
+from its camera was measured, e.g. as rendered depth, that distance's error relative to its noise) under a robust
+loss, minimised by ``scipy.optimize.least_squares`` with a sparse Jacobian.
 
 Pure numpy/scipy on float64 arrays; pycolmap only provides the observations (see ``nerfuser_ns.registration``).
 """
@@ -80,6 +81,8 @@ def refine_sim3_bundle(
     ref: int = 0,
     loss_scale_px: float = 1.0,
     max_nfev: int = 100,
+    obs_distance: Float[np.ndarray, " o"] | None = None,
+    distance_sigma: float | None = None,
 ) -> BundleResult:
     """Refine the NeRF -> reference SIM(3)s by bundle adjustment over rigid camera sets.
 
@@ -93,6 +96,10 @@ def refine_sim3_bundle(
         ref: the reference NeRF (held fixed).
         loss_scale_px: soft-L1 loss scale (pixels): residuals well above it count linearly, so outliers barely pull.
         max_nfev: solver iterations cap.
+        obs_distance, distance_sigma: optional measured distance of each observation's point from its camera (in
+            that camera's NeRF units, e.g. rendered depth) and its relative noise: each adds the residual
+            ``(|p| - d) / (distance_sigma d)``, in units of ``loss_scale_px`` so that both kinds share the robust
+            loss. Reported pixel errors count the reprojections only.
     """
     T_to_ref = sim3.to_homogeneous(T_to_ref)
     k = len(T_to_ref)
@@ -122,11 +129,22 @@ def refine_sim3_bundle(
             T[free] = _delta(x[:n_t].reshape(-1, 7)) @ T_to_ref[free]
         return T, x[n_t:].reshape(-1, 3)
 
+    with_distance = obs_distance is not None and distance_sigma is not None
+    if with_distance:
+        obs_distance = np.asarray(obs_distance, dtype=np.float64)
+        if len(obs_distance) != len(obs_cam) or not distance_sigma > 0:
+            raise ValueError("obs_distance must match the observations and distance_sigma be > 0")
+        distance_unit = distance_sigma * obs_distance / loss_scale_px
+
     def residuals(x: np.ndarray) -> np.ndarray:
         T, P = unpack(x)
         # world (reference) -> camera: w2c of the camera in its NeRF, after reference -> NeRF.
         M = w2c @ sim3.invert_sim3(T)[cam_nerf]
-        return (project(M[obs_cam], P[obs_point], K) - obs_xy).ravel()
+        r = (project(M[obs_cam], P[obs_point], K) - obs_xy).ravel()
+        if not with_distance:
+            return r
+        p = np.einsum("oij,oj->oi", M[obs_cam][:, :, :3], P[obs_point]) + M[obs_cam][:, :, 3]
+        return np.concatenate([r, (np.linalg.norm(p, axis=-1) - obs_distance) / distance_unit])
 
     # Sparsity: a residual depends on its NeRF's 7 increments and its point's 3 coordinates.
     rows = np.arange(len(obs_cam))
@@ -136,8 +154,13 @@ def refine_sim3_bundle(
     c_idx = [n_t + 3 * obs_point + c for _ in (0, 1) for c in range(3)]
     r_idx += [2 * moving + r for r in (0, 1) for _ in range(7)]
     c_idx += [7 * obs_slot[moving] + c for _ in (0, 1) for c in range(7)]
+    n_rows = 2 * len(obs_cam)
+    if with_distance:  # one more row per observation, on the same unknowns
+        r_idx += [n_rows + rows for _ in range(3)] + [n_rows + moving for _ in range(7)]
+        c_idx += [n_t + 3 * obs_point + c for c in range(3)] + [7 * obs_slot[moving] + c for c in range(7)]
+        n_rows += len(obs_cam)
     r_all, c_all = np.concatenate(r_idx), np.concatenate(c_idx)
-    sparsity = coo_matrix((np.ones(len(r_all), np.int8), (r_all, c_all)), shape=(2 * len(obs_cam), n_t + n_p)).tocsr()
+    sparsity = coo_matrix((np.ones(len(r_all), np.int8), (r_all, c_all)), shape=(n_rows, n_t + n_p)).tocsr()
 
     x0 = np.concatenate([np.zeros(n_t), points.ravel()])
     r0 = residuals(x0)
@@ -146,11 +169,12 @@ def refine_sim3_bundle(
         x_scale="jac", max_nfev=max_nfev, tr_solver="lsmr", ftol=1e-10, xtol=1e-10,
     )
     T, P = unpack(sol.x)
-    err = np.linalg.norm(sol.fun.reshape(-1, 2), axis=-1)
+    m = 2 * len(obs_cam)  # the reprojections (distance residuals follow them)
+    err = np.linalg.norm(sol.fun[:m].reshape(-1, 2), axis=-1)
     return BundleResult(
         T_to_ref=T,
         points=P,
-        rms_px_before=float(np.sqrt(np.mean(r0**2) * 2)),
+        rms_px_before=float(np.sqrt(np.mean(r0[:m] ** 2) * 2)),
         rms_px_after=float(np.sqrt(np.mean(err**2))),
         median_px_after=float(np.median(err)),
         inlier_fraction=float(np.mean(err <= 3 * loss_scale_px)),

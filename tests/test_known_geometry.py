@@ -3,6 +3,8 @@ scene renderers (exact depth), including the repeated-structure room a free SfM 
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from rich.console import Console
@@ -14,6 +16,7 @@ from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.cameras import Intrinsics, intrinsics_from_fov
 from nerfuser_ns.registration import known_geometry as kg
 from nerfuser_ns.registration import retrieval
+from nerfuser_ns.registration.refine import refine_on_matches
 from nerfuser_ns.renderers import RenderBatch
 
 W, H = 240, 180
@@ -163,6 +166,45 @@ def test_joint_solve_recovers_three_frames_from_a_perturbed_start():
     assert summary["used"] and summary["rms_relative_after"] < 1e-6 < summary["rms_relative_before"]
     assert err.r_err_deg.max() < 1e-5 and err.t_err.max() < 1e-6 and err.s_err.max() < 1e-6
     np.testing.assert_allclose(T_hat[0], np.eye(4))
+
+
+def test_refinement_on_matches_removes_the_rendered_depths_noise():
+    """Lifted points carry the rendered depth's noise along their rays, which biases a 3D-3D fit; the rigid-set
+    bundle adjustment on the same matches uses only where the keypoints are in the images, and the known poses."""
+    rng = np.random.default_rng(5)
+    intr = intrinsics(320, 240, 60.0)
+    T_true = np.stack([np.eye(4), sim3.make_sim3(sim3.so3_exp(np.array([0.1, -0.3, 0.8])), np.array([0.4, -1.0, 0.3]),
+                                                 1.7)])  # fmt: skip
+    world = rng.uniform(-0.6, 0.6, size=(400, 3))
+    angles = np.linspace(0, np.pi, 6)
+    views, feats = [], []
+    for n in range(2):
+        # each NeRF's cameras on its own arc around the points, expressed in its own frame
+        centres = np.stack([3 * np.cos(angles + n), 3 * np.sin(angles + n), 1.0 + 0 * angles], 1)
+        c2w = sim3.transform_poses(sim3.invert_sim3(T_true[n]), np.stack([look_at_origin(c) for c in centres]))
+        local = sim3.transform_points(sim3.invert_sim3(T_true[n]), world)
+        view = rng.integers(0, len(c2w), size=len(world))
+        xy, dist = np.zeros((len(world), 2)), np.zeros(len(world))
+        for v in range(len(c2w)):
+            sel = view == v
+            xy[sel], dist[sel], seen = kg.project(c2w[v], local[sel], intr)
+            assert seen.all()
+        noisy = dist * (1 + rng.normal(scale=0.02, size=len(dist)))  # 2% depth noise
+        points = np.stack([c2w[v][:3, 3] for v in view]) + noisy[:, None] * np.concatenate(
+            [kg.pixel_rays(c2w[v], xy[i : i + 1], intr) for i, v in enumerate(view)])  # fmt: skip
+        views.append(SimpleNamespace(c2w=c2w))
+        feats.append(kg.LiftedFeatures(view, xy, points, noisy, np.zeros((len(world), 128), np.float32)))
+    matches = [(0, 1, np.arange(len(world)), np.arange(len(world)))]
+    sigma = np.ones(len(world))
+    T_fit, _ = kg.joint_solve(np.stack([np.eye(4), T_true[1]]), 0,
+                              [(0, 1, feats[0].points, feats[1].points, sigma)], loss_scale=0.01)  # fmt: skip
+    T_ref, summary = refine_on_matches(views, feats, matches, T_fit, 0, intr, loss_scale_px=1.0, depth_sigma=0.02)
+    before, after = sim3.sim3_errors(T_fit[1], T_true[1]), sim3.sim3_errors(T_ref[1], T_true[1])
+    assert summary["used"] and summary["points"] == len(world) and summary["rms_px_after"] < 0.1 * summary["rms_px_before"]
+    # measured: r 0.47 -> 0.08 deg, t 0.0059 -> 0.0011, s 0.0042 -> 0.0011
+    assert before.r_err_deg > 0.1 and after.r_err_deg < 0.25 * before.r_err_deg
+    assert after.t_err < 0.25 * before.t_err and after.s_err < 0.5 * before.s_err
+    np.testing.assert_allclose(T_ref[0], np.eye(4))
 
 
 def test_candidate_pairs_follow_word_similarity():

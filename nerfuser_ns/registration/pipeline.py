@@ -8,7 +8,7 @@ One attempt (:func:`register_once`), mode ``sfm`` (the paper's): render
 (:mod:`~nerfuser_ns.registration.record`). Mode ``known-geometry`` (ours, :func:`register_known_geometry`): render
 with depth -> keypoints lifted to 3D, candidate view pairs, 3D-3D matches, SIM(3) hypotheses scored by the self-check
 (:mod:`~nerfuser_ns.registration.known_geometry`, :mod:`~nerfuser_ns.registration.retrieval`) -> joint solve ->
-self-check -> the record.
+rigid-set bundle adjustment on the matches -> self-check -> the record.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ from nerfuser_ns.registration.record import (
     work_dir_for,
     write_registration,
 )
-from nerfuser_ns.registration.refine import refine_transforms
+from nerfuser_ns.registration.refine import refine_on_matches, refine_transforms
 from nerfuser_ns.registration.render_cache import ViewSet, check_kept_views, render_key, render_views_cached
 from nerfuser_ns.registration.retrieval import (
     assign_words,
@@ -354,6 +354,10 @@ def _chain_from_reference(
     return T
 
 
+MIN_DEPTH_SIGMA = 1e-4
+"""Floor of the relative depth noise the known-geometry refinement assumes (exact depth would weigh infinitely)."""
+
+
 def register_known_geometry(
     renderers: Sequence[Renderer], config: RegistrationConfig, work_dir: Path | str, console: Console
 ) -> dict:
@@ -424,7 +428,7 @@ def register_known_geometry(
             )
     T_initial = _chain_from_reference(chosen, tree, ref, k)
     # pairs off the tree join the solve only when they agree with the tree (a wrong link would pull it apart)
-    links, dropped = [], []
+    links, linked, dropped = [], [], []
     for (a, b), h in chosen.items():
         implied = sim3.relative_sim3(T_initial[a], T_initial[b])  # b -> a
         err = sim3.sim3_errors(h.T, implied)
@@ -435,7 +439,15 @@ def register_known_geometry(
         s_a, s_b = (float(sim3.decompose_sim3(T_initial[n])[2]) for n in (a, b))
         sigma = 0.5 * (s_a * feats[a].distance[ia] + s_b * feats[b].distance[ib])
         links.append((a, b, feats[a].points[ia], feats[b].points[ib], sigma))
+        linked.append((a, b, ia, ib))
     T_to_ref, solve = joint_solve(T_initial, ref, links, kg.loss_scale)
+    refinement = None
+    if config.refine and solve["used"]:
+        # the depth's noise, as the joint solve's residuals measure it, weighs it against the reprojections
+        depth_sigma = max(solve["median_relative_after"], MIN_DEPTH_SIGMA)
+        with console.status("refining the transforms (rigid-set bundle adjustment on the matches)"):
+            T_to_ref, refinement = refine_on_matches(views, feats, linked, T_to_ref, ref, intr,
+                                                     config.refine_loss_scale_px, depth_sigma)  # fmt: skip
     timings["solve"] = time.perf_counter() - t0
 
     checked_pairs = tree if config.self_check_views > 0 else []
@@ -471,6 +483,7 @@ def register_known_geometry(
     record = build_known_geometry_result(
         renderers=renderers, views=views, T_to_ref=T_to_ref, T_initial=T_initial, views_matched=views_matched,
         overlap=overlap, checks=checks, config=config, timings=timings, known_geometry=summary,
+        refinement=refinement,
     ).to_record()
     failure = failure_message(checks, names, config)
     if failure is not None:

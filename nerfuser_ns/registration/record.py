@@ -375,10 +375,12 @@ def build_known_geometry_result(
     config: RegistrationConfig,
     timings: dict[str, float],
     known_geometry: dict,
+    refinement: dict | None = None,
 ) -> RegistrationResult:
     """The result of a known-geometry registration: ``T_initial`` the chosen pairwise hypotheses chained from the
-    reference, ``T_to_ref`` after the joint solve, ``views_matched`` per NeRF its views with inlier matches,
-    ``overlap`` the inlier matches per NeRF pair, ``known_geometry`` the mode's own summary (stored as is)."""
+    reference, ``T_to_ref`` after the joint solve and the refinement (its summary: ``refinement``), ``views_matched``
+    per NeRF its views with inlier matches, ``overlap`` the inlier matches per NeRF pair, ``known_geometry`` the
+    mode's own summary (stored as is)."""
     k = len(renderers)
     ref = config.reference % k
     pairs = _pair_results(T_to_ref, overlap, checks, config)
@@ -406,7 +408,7 @@ def build_known_geometry_result(
                **{step: s for step, s in timings.items() if step != "render"}}  # fmt: skip
     return RegistrationResult(
         created=datetime.now(timezone.utc).isoformat(timespec="seconds"), reference=ref, nerfs=nerfs, pairs=pairs,
-        sfm=None, refinement=None, settings=asdict(config),
+        sfm=None, refinement=refinement, settings=asdict(config),
         timings_s={step: round(s, 3) for step, s in timings.items()},
         compute_timings_s={step: None if s is None else round(s, 3) for step, s in compute.items()},
         known_geometry=known_geometry,
