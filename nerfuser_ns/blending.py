@@ -20,6 +20,9 @@ Methods (``BlendMethod``)
 * ``"idw-3d"``: pixel-wise IDW on the distance of each NeRF's expected surface point to its origin (Block-NeRF).
 * ``"idw-sample"``: NeRFuser's sample-wise IDW on merged ray samples (:mod:`nerfuser_ns.merging` +
   ``idw_sample_blend``).
+* ``"coverage"`` (ours, not the paper's): IDW-Sample with each merged sample's weights over NeRFs taken from how well
+  each NeRF's training cameras saw it (:mod:`nerfuser_ns.coverage`, ``coverage_weights``) instead of from the
+  distances to the NeRF origins. Without every NeRF's training cameras it is IDW-Sample.
 
 The distance test (``distance_mask``) leaves out of every IDW method the NeRFs whose origin is more than ``tau``
 times as far from the camera as the nearest one's. For two NeRFs this is the paper's test (the ratio of the two
@@ -40,12 +43,19 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
+from nerfuser_ns.coverage import CameraIndex, CoverageParams, coverage_scores
 from nerfuser_ns.merging import MergedSamples, merge_samples, merged_sample_distances
 
-BlendMethod = Literal["nerf", "nearest", "idw-2d", "idw-3d", "idw-sample"]
-"""Blending methods of the paper's Table 2: the plain NeRF, nearest NeRF, IDW-2D, IDW-3D and IDW-Sample."""
+BlendMethod = Literal["nerf", "nearest", "idw-2d", "idw-3d", "idw-sample", "coverage"]
+"""Blending methods of the paper's Table 2 (the plain NeRF, nearest NeRF, IDW-2D, IDW-3D and IDW-Sample) and ours,
+``coverage`` (IDW-Sample weighted by each NeRF's training-camera coverage)."""
+
+SAMPLE_METHODS: tuple[str, ...] = ("idw-sample", "coverage")
+"""The methods that blend merged ray samples (the others blend per-NeRF renderings)."""
 
 BLEND_METHODS: tuple[str, ...] = get_args(BlendMethod)
+PAPER_BLEND_METHODS: tuple[str, ...] = BLEND_METHODS[:5]
+"""The paper's methods (Table 2), without ours."""
 
 PAPER_OBJECT_CENTRIC: tuple[float, float] = (5.0, 1.8)
 """(gamma, tau) the paper uses on its object-centric indoor scenes (the default of every tool)."""
@@ -340,6 +350,7 @@ def idw_sample_blend(
     background_distances: Float[Tensor, " num_nerfs *bs"] | None = None,
     camera_distances: Float[Tensor, " num_nerfs *cam"] | None = None,
     tau: float | None = None,
+    nerf_weights: Float[Tensor, "num_nerfs *bs num_merged_bg"] | None = None,
 ) -> BlendOutputs:
     """IDW-Sample (NeRFuser): per merged sample IDW over NeRFs, then volume-rendering-style accumulation.
 
@@ -366,6 +377,9 @@ def idw_sample_blend(
         background_rgbs: each NeRF's background colour per ray; None: no background term.
         background_distances: distance of the background pseudo-sample to each NeRF origin.
         camera_distances, tau: optional distance test; failing rays use only the camera's nearest NeRF.
+        nerf_weights: normalisation (1) given instead of computed from ``distances`` (the ``coverage`` method's
+            ``coverage_weights``), the background pseudo-sample's column last when ``background_rgbs`` is given; the
+            distance test's mask must already be in it (``camera_distances`` still chooses the degenerate fallback).
 
     Returns:
         ``BlendOutputs``.
@@ -380,7 +394,8 @@ def idw_sample_blend(
         distances = torch.cat([distances, background_distances.unsqueeze(-1)], dim=-1)
 
     mask = None if camera_distances is None else distance_mask(camera_distances, tau)
-    w = idw_weights(distances, gamma, mask)  # normalisation (1), over the NeRFs that pass the distance test
+    # normalisation (1), over the NeRFs that pass the distance test
+    w = idw_weights(distances, gamma, mask) if nerf_weights is None else nerf_weights
     q = w * p
     total = q.sum(dim=(0, -1))
     # Fallback for rays whose IDW-weighted mass vanished: the plain mean over the NeRFs taking part.
@@ -409,6 +424,52 @@ def idw_sample_blend(
         background_weight=bg_w,
         nerf_share=q.sum(dim=-1),
     )
+
+
+def coverage_weights(
+    scores: Float[Tensor, " num_nerfs *bs"],
+    distances: Float[Tensor, " num_nerfs *bs"],
+    gamma: float,
+    mask: Bool[Tensor, " num_nerfs *m"] | None = None,
+) -> Float[Tensor, " num_nerfs *bs"]:
+    """Normalisation (1) of the ``coverage`` method (ours): ``w_i ∝ S_i^gamma`` over the NeRFs in ``mask``, i.e. IDW
+    on the pseudo-distance ``1 / S_i`` (:mod:`nerfuser_ns.coverage`); IDW-Sample's ``d_i^-gamma`` on ``distances``
+    where no NeRF in ``mask`` has a positive score.
+
+    Args:
+        scores: coverage scores ``S_i >= 0`` of each element (merged sample) for each NeRF.
+        distances: the element's distance to each NeRF origin (the fallback's).
+        gamma: sharpness, as IDW's: 0 the mean, inf the best-covered NeRF alone.
+        mask: NeRFs that take part (``distance_mask``), its dims the leading ones of ``scores``.
+    """
+    keep = torch.ones_like(scores, dtype=torch.bool)
+    if mask is not None:
+        keep = _pad_right(mask, scores.ndim).expand_as(scores)
+    covered = ((scores > 0) & keep).any(dim=0, keepdim=True)
+    pseudo = torch.where(scores > 0, 1.0 / scores.clamp(min=torch.finfo(scores.dtype).tiny), math.inf)
+    pseudo = torch.where(covered, pseudo, torch.ones_like(pseudo))  # uncovered: any finite value, replaced below
+    return torch.where(covered, idw_weights(pseudo, gamma, mask), idw_weights(distances, gamma, mask))
+
+
+def sample_coverage_scores(
+    merged: MergedSamples,
+    cameras: Sequence[CameraIndex],
+    ray_origins: Float[Tensor, "num_rays 3"],
+    ray_directions: Float[Tensor, "num_rays 3"],
+    pixel_widths: Float[Tensor, " num_rays"],
+    params: CoverageParams,
+) -> Float[Tensor, "num_nerfs num_rays num_merged_bg"]:
+    """Each NeRF's coverage score (cameras in the common frame) at every merged midpoint and at the ray's far end
+    (the background pseudo-sample, as ``merged_sample_distances`` places it). Candidate cameras are chosen per ray at
+    the merged samples' expected termination point (all NeRFs' mass together)."""
+    ts = torch.cat([merged.midpoints, merged.ends[..., -1:]], dim=-1)
+    mass = merged.weights.sum(dim=0)
+    total = mass.sum(-1)
+    mids = merged.midpoints
+    middle = 0.5 * (merged.starts[..., 0] + merged.ends[..., -1])  # massless rays: the middle of the samples' range
+    t_rep = torch.where(total > 0, (mass * mids).sum(-1) / torch.where(total > 0, total, 1.0), middle)
+    return torch.stack([coverage_scores(c, ray_origins, ray_directions, ts, pixel_widths, params, t_rep)
+                        for c in cameras])  # fmt: skip
 
 
 def render_samples(
@@ -460,6 +521,8 @@ class BlendSettings:
     tau: float | None = PAPER_OBJECT_CENTRIC[1]
     """None (or 0 where given): the distance test is off."""
     reference_nerf: int = 0
+    coverage: CoverageParams = CoverageParams()
+    """Constants of the ``coverage`` method."""
 
     @classmethod
     def from_config(cls, config: Any, environ: Any = None) -> BlendSettings:
@@ -482,7 +545,8 @@ class BlendSettings:
             tau = None if raw.lower() in ("", "none", "off") else number(ENV_TAU, raw)
         elif tau is not None:
             tau = number("tau", tau)
-        return cls(str(method), gamma, tau, int(config.reference_nerf)).checked()
+        coverage = getattr(config, "coverage", None) or CoverageParams()
+        return cls(str(method), gamma, tau, int(config.reference_nerf), coverage).checked()
 
     def checked(self, num_nerfs: int | None = None) -> BlendSettings:
         """This value with ``tau = 0`` read as off, or ValueError (one line) naming what is wrong."""
@@ -495,6 +559,7 @@ class BlendSettings:
                              f"got {self.tau}")  # fmt: skip
         if num_nerfs is not None and not -num_nerfs <= self.reference_nerf < num_nerfs:
             raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {num_nerfs} NeRFs")
+        self.coverage.checked()
         return self if self.tau != 0 else dataclasses.replace(self, tau=None)
 
     def replace(self, num_nerfs: int | None = None, **changes: Any) -> BlendSettings:
@@ -540,25 +605,32 @@ def blend(
     nerf_origins: Float[Tensor, "num_nerfs 3"],
     settings: BlendSettings,
     reference: int = 0,
+    cameras: Sequence[CameraIndex] | None = None,
+    pixel_widths: Float[Tensor, " num_rays"] | None = None,
 ) -> dict[str, dict[str, Tensor]]:
     """Every blend method in ``methods`` on the same per-NeRF ray samples (common-frame distances): per method its
     ``rgb``, ``accumulation``, (median) ``depth``, ``expected_depth`` and per-NeRF ``share`` ``[num_nerfs, num_rays]``.
 
-    The distance test (``settings.tau``) applies to the IDW methods; ``reference`` is the index (among these NeRFs)
-    that ``"nerf"`` shows. The reference functions above (``nearest_blend``, ``idw_2d``, ``idw_3d``,
-    ``idw_sample_blend``) are this entry's twins in the tests.
+    The distance test (``settings.tau``) applies to the IDW methods and ``coverage``; ``reference`` is the index
+    (among these NeRFs) that ``"nerf"`` shows. ``cameras`` are these NeRFs' training-camera indices in the common
+    frame and ``pixel_widths`` the rays' ``sqrt(pixel_area)``: ``coverage`` needs both and is IDW-Sample without
+    them (the caller warns). The reference functions above (``nearest_blend``, ``idw_2d``, ``idw_3d``,
+    ``idw_sample_blend``, ``coverage_weights``) are this entry's twins in the tests.
     """
     tau = settings.tau
     camera_d = camera_to_origin_distances(ray_origins, nerf_origins)  # [N, R]
     mask = distance_mask(camera_d, tau)
     results: dict[str, dict[str, Tensor]] = {}
     per_nerf = None
-    if any(m != "idw-sample" for m in methods):
+    if any(m not in SAMPLE_METHODS for m in methods):
         mids = 0.5 * (starts + ends)
         per_nerf = (render_samples(weights, rgbs, background_rgbs).clamp(0.0, 1.0), weights.sum(-1),
                     median_depth(weights, mids), expected_depth(weights, mids))  # fmt: skip
+    merged_once: tuple[Tensor, MergedSamples] | None = None
     for method in methods:
-        if method == "idw-sample":
+        if method in SAMPLE_METHODS and merged_once is not None:
+            order, merged = merged_once
+        elif method in SAMPLE_METHODS:
             # Each ray merges only the samples of the NeRFs passing its distance test, packed into the first slots
             # (as many as the most any ray of the chunk blends): the others must not split its intervals, so a ray
             # renders the same in any batch, and the sort sees no samples that cannot count.
@@ -574,7 +646,19 @@ def blend(
                 torch.where(keep, weights.gather(0, idx), 0.0),
                 rgbs.gather(0, idx[..., None].expand(-1, -1, -1, rgbs.shape[-1])),
             )
+            merged_once = (order, merged)
+        if method in SAMPLE_METHODS:
             d, d_bg = merged_sample_distances(merged, ray_origins, ray_directions, nerf_origins[order])
+            nerf_weights = None
+            if method == "coverage" and cameras is not None:
+                if pixel_widths is None:
+                    raise ValueError("coverage blending needs the rays' pixel widths (sqrt of pixel_area)")
+                scores = sample_coverage_scores(merged, cameras, ray_origins, ray_directions, pixel_widths,
+                                                settings.coverage)  # fmt: skip
+                slot_scores = scores.gather(0, order[..., None].expand(-1, -1, scores.shape[-1]))
+                slot_mask = None if tau is None else distance_mask(camera_d.gather(0, order), tau)
+                nerf_weights = coverage_weights(slot_scores, torch.cat([d, d_bg[..., None]], dim=-1), settings.gamma,
+                                                slot_mask)  # fmt: skip
             out = idw_sample_blend(
                 merged,
                 d,
@@ -583,6 +667,7 @@ def blend(
                 background_distances=d_bg,
                 camera_distances=camera_d.gather(0, order) if tau is not None else None,
                 tau=tau,
+                nerf_weights=nerf_weights,
             )
             results[method] = {
                 "rgb": out.rgb.clamp(0.0, 1.0),

@@ -10,8 +10,14 @@ Per ray batch (rays in the COMMON frame):
    sampler and field (:class:`NerfactoAdapter`);
 2. each NeRF's sample intervals are converted back to common-frame ray distances (a NeRF with scale ``s`` in its
    SIM(3) has ``t_common = s * t_nerf`` for unit directions);
-3. the NeRFs are blended with the selected method (``nerf``, ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample``),
-   every NeRF keeping its own background term (nerfacto "last_sample").
+3. the NeRFs are blended with the selected method (``nerf``, ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample``; ours:
+   ``coverage``, IDW-Sample weighted by each NeRF's training-camera coverage, :mod:`nerfuser_ns.coverage`), every
+   NeRF keeping its own background term (nerfacto "last_sample").
+
+Appearance matching (ours, :mod:`nerfuser_ns.appearance`): each NeRF's sample and background colours go through its
+colour map to the reference NeRF (from the registration file; identity when absent) before blending, unless
+``appearance_matching`` is off. Training cameras (for ``coverage``) come from the registration file too, mapped once
+into the common frame; rendering never reads a dataset. Without them ``coverage`` is IDW-Sample (one warning).
 
 Frames: the sub-models never move; only rays do. ``pixel_area`` (the pixel footprint at unit ray distance, a solid
 angle) is invariant under a similarity: at distance ``t_nerf = t / s`` the footprint is ``pixel_area * t^2 / s^2``,
@@ -25,6 +31,7 @@ The blend method, gamma and tau can be changed at render time: set :attr:`Nerfus
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +51,10 @@ from torchmetrics.functional import structural_similarity_index_measure
 from torchmetrics.image import PeakSignalNoiseRatio
 
 from nerfuser_ns import blending, runtime
+from nerfuser_ns.appearance import IDENTITY, apply_colour_map
 from nerfuser_ns.blending import BLEND_METHODS, PAPER_OBJECT_CENTRIC, SHARE_PALETTE, BlendMethod, BlendSettings
+from nerfuser_ns.coverage import CameraIndex, CoverageParams
+from nerfuser_ns.registration.record import TrainingCameras
 from nerfuser_ns.runs import load_run
 from nerfuser_ns.spec import read_fusion_spec
 from nerfuser_ns.viewer import NerfuserSceneControl
@@ -246,7 +256,8 @@ class NerfuserModelConfig(ModelConfig):
     """Off: each sub-model applies its own collider in its own frame (what it would do itself). If the incoming
     rays already carry nears/fars, they are mapped into each NeRF's frame instead."""
     blend_method: BlendMethod = "idw-sample"
-    """``nerf`` (one NeRF), ``nearest``, ``idw-2d``, ``idw-3d`` or ``idw-sample`` (NeRFuser)."""
+    """``nerf`` (one NeRF), ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample`` (NeRFuser) or ``coverage`` (ours:
+    IDW-Sample weighted by each NeRF's training-camera coverage; IDW-Sample when a NeRF's cameras are unknown)."""
     gamma: float = PAPER_OBJECT_CENTRIC[0]
     """IDW blending rate (w ~ d^-gamma); 0: mean, inf: nearest. The paper uses 5 (objects), 10 (street)."""
     tau: float | None = PAPER_OBJECT_CENTRIC[1]
@@ -255,6 +266,11 @@ class NerfuserModelConfig(ModelConfig):
     paper uses 1.8 (objects), 1.2 (street)."""
     reference_nerf: int = 0
     """The NeRF rendered by the ``nerf`` method."""
+    coverage: CoverageParams = field(default_factory=CoverageParams)
+    """Constants of the ``coverage`` method: angular width, cameras per score, candidate cameras per ray."""
+    appearance_matching: bool = True
+    """Map each NeRF's colours to the reference NeRF's with its colour map from the registration file (ours; the
+    identity where the file has none)."""
     share_outputs: bool = True
     """Also output ``share_<i>`` (each NeRF's share of the pixel weight) and a colour-coded ``nerf_share`` map."""
     render_all_methods: bool = False
@@ -271,7 +287,9 @@ class NerfuserModel(Model):
 
     Sub-models come from ``metadata["nerfuser"]`` (a :class:`nerfuser_ns.data.FusionSpec`, set by the datamanager):
     each is rebuilt from its own run with :func:`nerfuser_ns.runs.load_run`. ``metadata["nerfuser_models"]``, a list of
-    ``(name, Model, nerf_to_common)``, passes already loaded models instead (tests, scripts).
+    ``(name, Model, nerf_to_common[, training_cameras[, colour_to_reference]])`` (cameras as
+    :class:`~nerfuser_ns.registration.record.TrainingCameras` or :class:`~nerfuser_ns.coverage.CameraIndex` in the
+    NeRF's frame, the colour map 3x4), passes already loaded models instead (tests, scripts).
     """
 
     config: NerfuserModelConfig
@@ -284,7 +302,8 @@ class NerfuserModel(Model):
             entries = list(metadata["nerfuser_models"])
         elif metadata.get("nerfuser") is not None or self.config.fusion_spec is not None:
             spec = metadata.get("nerfuser") or read_fusion_spec(self.config.fusion_spec, register=False)
-            entries = [(n.name, load_run(n.config_path, device="cpu").model, n.nerf_to_common) for n in spec.nerfs]
+            entries = [(n.name, load_run(n.config_path, device="cpu").model, n.nerf_to_common, n.training_cameras,
+                        n.colour_to_reference) for n in spec.nerfs]  # fmt: skip
         else:
             raise ValueError("nerfuser: no sub-models; pass the fusion spec (--data, or --pipeline.model.fusion-spec)")
         if not entries:
@@ -306,6 +325,17 @@ class NerfuserModel(Model):
         self.register_buffer("nerf_origins", T[:, :3, 3].float(), persistent=False)
         self.register_buffer("nerf_scales", scales.float(), persistent=False)
         self._identity = [bool(torch.equal(t, torch.eye(4, dtype=t.dtype))) for t in T]
+        # Training cameras, mapped once into the common frame (per device on first use; a few KB per NeRF).
+        self.nerf_cameras = [_camera_index(e[3] if len(e) > 3 else None, t) for e, t in zip(entries, T, strict=True)]
+        self._cameras_on: dict[torch.device, list[CameraIndex | None]] = {}
+        self._coverage_warned = False
+        maps = [None if len(e) < 5 or e[4] is None else np.asarray(e[4], dtype=np.float64) for e in entries]
+        for name, m in zip(self.nerf_names, maps, strict=True):
+            if m is not None and (m.shape != (3, 4) or not np.isfinite(m).all()):
+                raise ValueError(f"nerfuser: run {name!r}: its colour map must be a finite 3x4 matrix")
+        self._colour_mapped = [m is not None and not np.array_equal(m, IDENTITY) for m in maps]
+        colour_maps = np.stack([IDENTITY if m is None else m for m in maps])
+        self.register_buffer("colour_maps", torch.tensor(colour_maps, dtype=torch.float32), persistent=False)
 
         # Render-time settings: one checked value, changed only through set_blend (viewer, sweeps, attributes).
         self.blend_settings = BlendSettings.from_config(self.config).checked(self.num_nerfs)
@@ -483,12 +513,16 @@ class NerfuserModel(Model):
             s = q.samples
             st, en = s.starts / q.scale, s.ends / q.scale
             last = en[..., -1]
+            rgbs, background = s.rgbs, s.background_rgb
+            if self.config.appearance_matching and self._colour_mapped[i]:
+                rgbs = apply_colour_map(rgbs, self.colour_maps[i])
+                background = apply_colour_map(background, self.colour_maps[i])
             parts = [
                 _pad_samples(st, kmax, last, -1),
                 _pad_samples(en, kmax, last, -1),
                 _pad_samples(s.weights, kmax, 0.0, -1),
-                _pad_samples(s.rgbs, kmax, 0.0, -2),
-                s.background_rgb,
+                _pad_samples(rgbs, kmax, 0.0, -2),
+                background,
             ]
             have = torch.ones(num_rays, dtype=torch.bool, device=st.device)
             if q.rows is not None:
@@ -521,8 +555,12 @@ class NerfuserModel(Model):
         ends_t = torch.where(have[..., None], ends_t, far)
         settings = self.blend_settings if n > 1 else self.blend_settings.replace(tau=None)
         ref = self.reference_nerf % n
-        results = blending.blend(self._methods(), starts_t, ends_t, p, c, bg, origins, directions, nerf_origins[ids],
-                                 settings, reference=ids.index(ref) if ref in ids else 0)  # fmt: skip
+        methods = self._methods()
+        cameras = self._coverage_cameras(ids) if "coverage" in methods else None
+        pixel_widths = ray_bundle.pixel_area[..., 0].sqrt() if cameras is not None else None
+        results = blending.blend(methods, starts_t, ends_t, p, c, bg, origins, directions, nerf_origins[ids],
+                                 settings, reference=ids.index(ref) if ref in ids else 0, cameras=cameras,
+                                 pixel_widths=pixel_widths)  # fmt: skip
         main = results[self.blend_method]
         outputs = {
             "rgb": main["rgb"],
@@ -541,6 +579,22 @@ class NerfuserModel(Model):
             for method, res in results.items():
                 outputs[f"rgb_{method.replace('-', '_')}"] = res["rgb"]
         return outputs
+
+    def _coverage_cameras(self, ids: list[int]) -> list[CameraIndex] | None:
+        """The training-camera indices of NeRFs ``ids`` on the model's device, or None (one warning per model) when
+        one of them has none: ``coverage`` is IDW-Sample then."""
+        missing = [self.nerf_names[i] for i in ids if self.nerf_cameras[i] is None]
+        if missing:
+            if not self._coverage_warned:
+                self._coverage_warned = True
+                warnings.warn(f"nerfuser: blend method 'coverage' needs every NeRF's training cameras; {missing} have "
+                              "none in the registration file (registered before they were recorded, or their datasets "
+                              "were gone): IDW-Sample is used instead", stacklevel=2)  # fmt: skip
+            return None
+        device = self.nerf_origins.device
+        if device not in self._cameras_on:
+            self._cameras_on[device] = [None if c is None else c.to(device) for c in self.nerf_cameras]
+        return [self._cameras_on[device][i] for i in ids]  # type: ignore[misc]
 
     # --- evaluation -------------------------------------------------------------------------------------------------
 
@@ -577,10 +631,22 @@ class NerfuserModel(Model):
         return metrics, images
 
 
+def _camera_index(cameras: TrainingCameras | CameraIndex | None, nerf_to_common: Tensor) -> CameraIndex | None:
+    """A NeRF's training cameras (its own frame) as a look-up index in the common frame."""
+    if cameras is None:
+        return None
+    if isinstance(cameras, TrainingCameras):
+        cameras = CameraIndex.from_cameras(cameras.c2w, cameras.intrinsics)
+    if not isinstance(cameras, CameraIndex):
+        raise TypeError(f"nerfuser: training cameras must be TrainingCameras or CameraIndex, got {type(cameras)}")
+    return cameras.transformed(nerf_to_common).to("cpu")
+
+
 def fuse_models(
-    nerfs: Sequence[tuple[str, Model, Any]], config: NerfuserModelConfig | None = None, **overrides: Any
+    nerfs: Sequence[tuple[Any, ...]], config: NerfuserModelConfig | None = None, **overrides: Any
 ) -> NerfuserModel:
-    """A fused model from already loaded sub-models ``(name, model, nerf_to_common 4x4)`` (tests, scripts).
+    """A fused model from already loaded sub-models ``(name, model, nerf_to_common 4x4)``, optionally followed by
+    the NeRF's training cameras and its colour map to the reference (tests, scripts).
 
     ``overrides`` set config fields (e.g. ``blend_method="nearest"``, ``gamma=2.0``).
     """

@@ -36,11 +36,14 @@ NeRF ``name``, ``config``, ``T_to_reference``), and a minimal hand-written form
 ``T_to_reference`` / ``transform`` maps points of that NeRF's frame (the normalised frame nerfstudio trained it in)
 into the common frame: ``p_common = T @ [p_nerf, 1]``, ``T = [[s R, t], [0, 0, 0, 1]]`` (the reference NeRF's frame,
 the first by default, so its transform is the identity). Relative ``config`` paths are relative to the registration
-file's folder.
+file's folder. Optional per NeRF (both forms): ``training_cameras`` (its training cameras in its own frame, for the
+``coverage`` blend method) and ``colour_to_reference`` (its colour map for appearance matching); absent means unknown
+(``coverage`` falls back to IDW-Sample) and the identity.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -234,7 +237,9 @@ def read_registered_nerfs(path: Path | str, check_runs: bool = True) -> list[Ner
                     _check_same_weights(config_path, item.checkpoint, path)
             T = validate_sim3(item.transform, f"{where}.{item.transform_key}")
             name = item.name or f"nerf{item.index}"
-            entries.append(NerfEntry(name=str(name), config_path=config_path, nerf_to_common=T))
+            entries.append(NerfEntry(name=str(name), config_path=config_path, nerf_to_common=T,
+                                     training_cameras=item.training_cameras,
+                                     colour_to_reference=item.colour_to_reference))  # fmt: skip
     except RegistrationFileError as e:
         raise FusionSpecError(one_line(str(e))) from None
     names = [e.name for e in entries]
@@ -383,7 +388,7 @@ def _match_runs(
             )
         used.add(match[0])
         entry = nerfs[match[0]]
-        out.append(NerfEntry(name or entry.name, entry.config_path, entry.nerf_to_common))
+        out.append(dataclasses.replace(entry, name=name or entry.name))
     extra = [str(nerfs[j].config_path) for j in range(len(nerfs)) if j not in used]
     if extra:
         raise FusionSpecError(

@@ -8,10 +8,12 @@ import torch
 
 from nerfuser_ns.blending import (
     BLEND_METHODS,
+    PAPER_BLEND_METHODS,
     BlendSettings,
     apply_distance_test,
     blend,
     camera_to_origin_distances,
+    coverage_weights,
     distance_mask,
     distance_ratio,
     distance_test,
@@ -26,6 +28,7 @@ from nerfuser_ns.blending import (
     nearest_index,
     render_samples,
 )
+from nerfuser_ns.coverage import CameraIndex, CoverageParams, coverage_scores
 from nerfuser_ns.merging import MergedSamples, merge_samples, merged_sample_distances, sample_distances
 
 GAMMAS = [0.01, 1.0, 100.0, 1e4]
@@ -430,7 +433,8 @@ def test_idw_3d():
 
 
 def test_image_blend_weights_and_methods():
-    assert BLEND_METHODS == ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
+    assert PAPER_BLEND_METHODS == ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
+    assert BLEND_METHODS == PAPER_BLEND_METHODS + ("coverage",)  # ours after the paper's
     d = torch.tensor([2.0, 1.0])
     torch.testing.assert_close(image_blend_weights("nerf", d, 1.0, reference=0), torch.tensor([1.0, 0.0]))
     torch.testing.assert_close(image_blend_weights("nearest", d, 1.0), torch.tensor([0.0, 1.0]))
@@ -548,6 +552,55 @@ def test_blend_entry_matches_the_reference_functions(gamma, tau):
     for method in BLEND_METHODS:
         share = out[method]["share"]
         assert share.shape == (3, 40) and torch.isfinite(share).all()
+
+
+@pytest.mark.parametrize("tau", [None, 1.5])
+def test_blend_coverage_matches_its_twins_and_is_idw_sample_without_cameras(tau):
+    """``coverage`` in ``blend``, ray by ray: the kept NeRFs' samples merged, each NeRF's coverage score at the merged
+    midpoints and the far end (candidates at the merged mass's expected point), ``coverage_weights``, then
+    IDW-Sample's accumulation with those weights."""
+    starts, ends, p, rgbs, bg, o, d, origins = _blend_inputs()
+    gen = torch.Generator().manual_seed(11)
+    params = CoverageParams(sigma_deg=35.0, k=2, candidates=3)
+    cameras = []
+    for i in range(3):  # a few cameras per NeRF around its origin, looking at the rays' region
+        centres = origins[i] + torch.randn(5, 3, generator=gen, dtype=torch.float64) * 2
+        c2w = torch.stack([_look_at(c, torch.zeros(3, dtype=torch.float64)) for c in centres])
+        cameras.append(CameraIndex.from_cameras(c2w, [30.0, 30.0, 16.0, 12.0, 32.0, 24.0]))
+    pw = torch.full((40,), 0.02, dtype=torch.float64)
+    settings = BlendSettings(method="coverage", gamma=3.0, tau=tau, coverage=params)
+    out = blend(["idw-sample", "coverage"], starts, ends, p, rgbs, bg, o, d, origins, settings, cameras=cameras,
+                pixel_widths=pw)["coverage"]  # fmt: skip
+    cam_d = camera_to_origin_distances(o, origins)
+    keep = distance_mask(cam_d, tau)
+    covered = 0
+    for ray in range(starts.shape[1]):
+        ids = keep[:, ray].nonzero()[:, 0]
+        sl = slice(ray, ray + 1)
+        merged = merge_samples(starts[ids, sl], ends[ids, sl], p[ids, sl], rgbs[ids, sl])
+        dist, d_bg = merged_sample_distances(merged, o[sl], d[sl], origins[ids])
+        ts = torch.cat([merged.midpoints, merged.ends[..., -1:]], dim=-1)
+        mass = merged.weights.sum(0)
+        t_rep = (mass * merged.midpoints).sum(-1) / mass.sum(-1)
+        scores = torch.stack([coverage_scores(cameras[int(i)], o[sl], d[sl], ts, pw[sl], params, t_rep) for i in ids])
+        covered += int((scores > 0).any(0).sum())
+        w = coverage_weights(scores, torch.cat([dist, d_bg[..., None]], dim=-1), 3.0)
+        ref = idw_sample_blend(merged, dist, 3.0, bg[ids, sl], d_bg, nerf_weights=w)
+        torch.testing.assert_close(out["rgb"][sl], ref.rgb.clamp(0, 1))
+        torch.testing.assert_close(out["accumulation"][sl], ref.accumulation)
+        torch.testing.assert_close(out["share"][ids, ray], ref.nerf_share[:, 0])
+    assert covered > 40  # the cameras see many samples: the check is not the fallback alone
+    plain = blend(["idw-sample", "coverage"], starts, ends, p, rgbs, bg, o, d, origins, settings)
+    for key in plain["idw-sample"]:
+        assert torch.equal(plain["coverage"][key], plain["idw-sample"][key])
+    assert not torch.allclose(out["rgb"], plain["idw-sample"]["rgb"])
+
+
+def _look_at(centre, target):
+    back = torch.nn.functional.normalize(centre - target, dim=0)
+    right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=back.dtype), back),
+                                          dim=0)  # fmt: skip
+    return torch.stack([right, torch.linalg.cross(back, right), back, centre], dim=-1)
 
 
 def test_blend_settings_are_checked_once_and_tau_zero_is_off():

@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -17,10 +18,12 @@ import yaml
 from nerfstudio.cameras.rays import RayBundle
 
 from nerfuser_ns import runs, sim3
+from nerfuser_ns.appearance import IDENTITY, apply_colour_map
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.training import train
-from nerfuser_ns.blending import BLEND_METHODS
+from nerfuser_ns.blending import BLEND_METHODS, render_samples
 from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.coverage import CameraIndex
 from nerfuser_ns.model import NerfuserModel, fuse_models, map_rays
 from nerfuser_ns.registration import NerfEntry, write_minimal_registration
 from nerfuser_ns.spec import write_fusion_spec
@@ -187,6 +190,72 @@ def test_gamma_infinity_is_nearest_and_large_gamma_converges(pair):
     fused.gamma, fused.tau = 5.0, 1.0
     close(render(fused, c2w)["rgb"], a_here["rgb"], 1e-5)
     fused.tau = None
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Ours: coverage blending and appearance matching
+
+
+def _cameras(*c2w: np.ndarray) -> CameraIndex:
+    return CameraIndex.from_cameras(np.stack(c2w), [INTR.fx, INTR.fy, INTR.cx, INTR.cy, INTR.width, INTR.height])
+
+
+# The scene seen from the other side: C2W turned half a turn about x (looks along +z) and moved behind the scene.
+C2W_BEHIND = np.diag([1.0, -1.0, -1.0, 1.0]) @ C2W
+
+
+def test_coverage_gives_the_weight_to_the_nerf_whose_cameras_saw_the_view(pair):
+    """Each NeRF's cameras in its own frame: one NeRF saw the scene from the query camera, the other only from
+    behind. The one that saw it takes the pixel; IDW-Sample would share it."""
+    fused, _ = pair
+    (a, b), T_b = fused.nerfs.models, fused.nerf_to_common[1].double().numpy()
+    to_b = sim3.invert_sim3(T_b)
+    seen = [_cameras(C2W), _cameras(sim3.transform_poses(to_b, C2W))]
+    behind = [_cameras(C2W_BEHIND), _cameras(sim3.transform_poses(to_b, C2W_BEHIND))]
+    idw = render(fuse_models([("a", a, np.eye(4)), ("b", b, T_b)], tau=None), C2W, ("share_0",))["share_0"]
+    assert 0.05 < float(idw.mean()) < 0.95  # IDW-Sample shares the pixels: the check below is not vacuous
+    for who in (0, 1):
+        cams_a, cams_b = (seen[0], behind[1]) if who == 0 else (behind[0], seen[1])
+        two = fuse_models([("a", a, np.eye(4), cams_a), ("b", b, T_b, cams_b)], tau=None, blend_method="coverage")
+        out = render(two, C2W, ("rgb", "share_0", "share_1"))
+        assert float(out[f"share_{who}"].min()) > 0.95, who
+        close(out["share_0"] + out["share_1"], torch.ones_like(out["share_0"]), 1e-5)
+
+
+def test_coverage_without_cameras_is_idw_sample_with_one_warning(pair):
+    fused, _ = pair
+    (a, b), T_b = fused.nerfs.models, fused.nerf_to_common[1].double().numpy()
+    # One NeRF without cameras is enough: scores of some NeRFs only cannot be compared.
+    two = fuse_models([("a", a, np.eye(4), _cameras(C2W)), ("b", b, T_b)], tau=None, blend_method="coverage")
+    with pytest.warns(UserWarning, match=r"coverage.*\['b'\] have none.*IDW-Sample is used instead"):
+        got = render(two, C2W, OUTPUTS + ("share_0",))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        render(two, C2W, ("rgb",))
+    assert not [w for w in caught if "coverage" in str(w.message)]  # one warning per model, not one per batch
+    two.blend_method = "idw-sample"
+    want = render(two, C2W, OUTPUTS + ("share_0",))
+    for key in want:
+        assert torch.equal(got[key], want[key]), key
+
+
+def test_colour_maps_are_applied_to_each_nerfs_colours_and_can_be_switched_off(trained):
+    colour = np.hstack([np.diag([0.6, 1.0, 1.4]), np.full((3, 1), 0.02)])
+    plain = render(fuse_models([("a", trained.model, np.eye(4))]), C2W)["rgb"]
+    mapped = fuse_models([("a", trained.model, np.eye(4), None, colour)])
+    got = render(mapped, C2W)["rgb"]
+    assert (got - plain).abs().mean() > 0.02
+    # The twin: the map on every sample colour and the background, then nerfstudio's volume rendering.
+    bundle = cams(C2W).generate_rays(torch.arange(1)[:, None], keep_shape=False)
+    with torch.no_grad():
+        s = mapped.nerf_samples(bundle)[0].samples
+        m = torch.tensor(colour, dtype=torch.float32)
+        want = render_samples(s.weights, apply_colour_map(s.rgbs, m), apply_colour_map(s.background_rgb, m))
+    close(got.reshape(-1, 3), want.clamp(0, 1), 1e-5)
+    off = fuse_models([("a", trained.model, np.eye(4), None, colour)], appearance_matching=False)
+    assert torch.equal(render(off, C2W)["rgb"], plain)
+    identity = fuse_models([("a", trained.model, np.eye(4), None, IDENTITY)])
+    assert torch.equal(render(identity, C2W)["rgb"], plain)
 
 
 # ----------------------------------------------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ from nerfuser_ns.bench.ground_truth import (
     score_registration,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
+from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration import estimate as reg_estimate
 from nerfuser_ns.registration import pipeline as reg_pipeline
 from nerfuser_ns.registration import sfm as reg_sfm
@@ -262,6 +263,56 @@ def test_minimal_form(tmp_path):
     with pytest.raises(reg.RegistrationFileError, match="nerfs.1.: missing config"):
         path.write_text(json.dumps({"nerfs": [{"config": "a.yml", "transform": []}, {"transform": []}]}))
         list(reg.iter_registered_nerfs(path))
+
+
+def test_training_cameras_and_colour_maps_travel_with_the_file(tmp_path):
+    """Optional per-NeRF fields: written when known, read back checked, absent meaning unknown."""
+    from nerfuser_ns.registration.record import TrainingCameras, colour_maps_to_reference, training_cameras_of
+    from nerfuser_ns.spec import read_registered_nerfs
+
+    c2w = np.stack([np.eye(4), sim3.make_sim3(np.eye(3), [0.0, 0.0, 2.0], 1.0)])
+    cams = TrainingCameras(c2w, np.array([[30.0, 30.0, 16.0, 12.0, 32.0, 24.0]] * 2))
+    colour = np.hstack([np.diag([1.2, 1.0, 0.8]), np.full((3, 1), 0.01)])
+    entries = [reg.NerfEntry("a", tmp_path / "a.yml", np.eye(4)),
+               reg.NerfEntry("b", tmp_path / "b.yml", np.eye(4), training_cameras=cams, colour_to_reference=colour)]
+    path = reg.write_minimal_registration(entries, tmp_path / "reg.json")
+    assert "training_cameras" not in json.loads(path.read_text())["nerfs"][0]  # unknown: no key
+    a, b = read_registered_nerfs(path, check_runs=False)
+    assert a.training_cameras is None and a.colour_to_reference is None
+    np.testing.assert_allclose(b.training_cameras.c2w, c2w, atol=1e-6)
+    np.testing.assert_allclose(b.training_cameras.intrinsics, cams.intrinsics)
+    np.testing.assert_allclose(b.colour_to_reference, colour)
+    data = json.loads(path.read_text())
+    data["nerfs"][1]["training_cameras"]["intrinsics"] = [[30.0, 30.0, 16.0, 12.0, 32.0]]
+    path.write_text(json.dumps(data))
+    with pytest.raises(reg.RegistrationFileError, match=r"nerfs\[1\]: training_cameras must hold"):
+        list(reg.iter_registered_nerfs(path))
+    data["nerfs"][1]["training_cameras"] = None
+    data["nerfs"][1]["colour_to_reference"] = [[1.0, 0.0]]
+    path.write_text(json.dumps(data))
+    with pytest.raises(reg.RegistrationFileError, match="colour_to_reference must be a finite 3x4"):
+        list(reg.iter_registered_nerfs(path))
+
+    # A renderer's cameras: its training poses with its intrinsics; None when it has none.
+    class WithPoses:
+        def training_poses(self):
+            return c2w
+
+        def training_intrinsics(self):
+            return Intrinsics(30.0, 30.0, 16.0, 12.0, 32, 24)
+
+    got = training_cameras_of(WithPoses())
+    np.testing.assert_array_equal(got.c2w, c2w) and np.testing.assert_array_equal(got.intrinsics, cams.intrinsics)
+    assert training_cameras_of(FakeRenderer("x", "blank")) is None
+
+    # Colour maps chain along the checked pairs to the reference: 2 -> 1 -> 0.
+    half = np.hstack([0.5 * np.eye(3), np.zeros((3, 1))])
+    checks = [reg.CrossRenderCheck(0, 1, 0.9, 0.9, 2, colour_j_to_i=half, colour_i_to_j=4 * half),
+              reg.CrossRenderCheck(1, 2, 0.9, 0.9, 2, colour_j_to_i=half, colour_i_to_j=4 * half)]  # fmt: skip
+    maps = colour_maps_to_reference(3, 0, checks)
+    np.testing.assert_allclose(maps[2][:, :3], 0.25 * np.eye(3))
+    np.testing.assert_allclose(colour_maps_to_reference(3, 2, checks)[0][:, :3], 4 * np.eye(3))
+    assert colour_maps_to_reference(3, 0, checks[:1])[2] is None
 
 
 def test_work_folder_and_render_poses(tmp_path):

@@ -47,6 +47,7 @@ from jaxtyping import Bool, Float, Int
 from PIL import Image
 from torch import Tensor
 
+from nerfuser_ns.appearance import linear_to_srgb, srgb_to_linear
 from nerfuser_ns.cameras import ArrayOrTensor, Intrinsics, camera_rays, check_positive_int, supersample_offsets
 from nerfuser_ns.sampling import look_at
 from nerfuser_ns.sim3 import decompose_sim3, invert_sim3, make_sim3, transform_poses
@@ -706,6 +707,16 @@ class Capture:
     """SIM(3) from this capture's own frame to the world (identity for the test capture, posed in the world)."""
     focus: str = ""
     """What the capture is about (an object name or a street segment), for humans."""
+    exposure: float = 1.0
+    """Gain on linear RGB of every image of this capture (``LayoutParams.appearance_jitter``; the test capture: 1)."""
+    white_balance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Per-channel gains on linear RGB (green 1)."""
+
+    @property
+    def appearance_gains(self) -> np.ndarray | None:
+        """Linear-RGB gains ``exposure * white_balance``; None when neutral (images as rendered)."""
+        gains = self.exposure * np.asarray(self.white_balance, dtype=np.float64)
+        return None if np.array_equal(gains, np.ones(3)) else gains
 
     @property
     def num_views(self) -> int:
@@ -762,6 +773,10 @@ class LayoutParams:
     symmetric: bool = False
     """Room layout only (the others ignore it): leave out the room's one asymmetric element, its door, so that the
     room is exactly symmetric under a half turn about its vertical axis (the registration becomes ambiguous)."""
+    appearance_jitter: float = 0.0
+    """Per training capture its own exposure and white balance, as captures filmed at different times have: exposure
+    ``2^u`` stops with ``u ~ U(-j, j)``, red and blue gains ``2^v``, ``v ~ U(-j/2, j/2)`` (green 1), on linear RGB.
+    0: every capture as rendered (the test capture always is)."""
 
     def validate(self) -> None:
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
@@ -777,6 +792,8 @@ class LayoutParams:
             raise ValueError(f"texels_per_metre must be in [4, 1024], got {self.texels_per_metre}")
         if not isinstance(self.symmetric, (bool, np.bool_)):
             raise ValueError(f"symmetric must be a boolean, got {self.symmetric!r}")
+        if not 0.0 <= self.appearance_jitter <= 2.0:
+            raise ValueError(f"appearance_jitter must be in [0, 2] stops, got {self.appearance_jitter}")
 
 
 def _rng(seed: int, stream: int) -> np.random.Generator:
@@ -1161,7 +1178,34 @@ def make_layout(layout: str, **params) -> SceneLayout:
     unknown = set(params) - set(LayoutParams.__dataclass_fields__)
     if unknown:
         raise ValueError(f"unknown layout parameters: {sorted(unknown)}")
-    return LAYOUTS[layout](LayoutParams(**params))
+    lp = LayoutParams(**params)
+    built = LAYOUTS[layout](lp)
+    if lp.appearance_jitter > 0:
+        _draw_appearance(built, lp.appearance_jitter)
+    else:  # the parameter's default leaves ground_truth.json as it was before the parameter existed
+        built.params.pop("appearance_jitter", None)
+    return built
+
+
+APPEARANCE_STREAM = 97
+"""Random stream of the per-capture appearance (independent of geometry, textures and cameras)."""
+
+
+def _draw_appearance(layout: SceneLayout, jitter: float) -> None:
+    """Gives each training capture its own exposure and white balance (see ``LayoutParams.appearance_jitter``)."""
+    rng = _rng(layout.seed, APPEARANCE_STREAM)
+    for cap in layout.captures:
+        cap.exposure = float(2.0 ** rng.uniform(-jitter, jitter))
+        red, blue = 2.0 ** rng.uniform(-jitter / 2, jitter / 2, size=2)
+        cap.white_balance = (float(red), 1.0, float(blue))
+
+
+def apply_appearance(rgb: Float[Tensor, "*bs 3"], gains: np.ndarray | None) -> Float[Tensor, "*bs 3"]:
+    """Rendered sRGB colours as a capture with these linear-RGB gains records them (clipped to [0, 1])."""
+    if gains is None:
+        return rgb
+    lin = srgb_to_linear(rgb.clamp(0.0, 1.0)) * torch.as_tensor(gains, dtype=rgb.dtype, device=rgb.device)
+    return linear_to_srgb(lin.clamp(0.0, 1.0))
 
 
 def layout_from_ground_truth(path: str | Path) -> SceneLayout:
@@ -1220,7 +1264,7 @@ def write_capture(
         z = ray_to_z_depth(out.depth, k).numpy() / scale
         depth_u16 = np.where(out.mask.numpy(), np.clip(np.round(z / DEPTH_UNIT_SCALE), 1, 65535), 0).astype(np.uint16)
         image_name, depth_name = f"images/frame_{i:05d}.png", f"depths/frame_{i:05d}.png"
-        _save_png(folder / image_name, to_uint8(out.rgb))
+        _save_png(folder / image_name, to_uint8(apply_appearance(out.rgb, capture.appearance_gains)))
         _save_png(folder / depth_name, depth_u16)
         frames.append({"file_path": image_name, "depth_file_path": depth_name, "transform_matrix": _rounded(poses[i])})
         if progress is not None:
@@ -1257,7 +1301,11 @@ def ground_truth_dict(layout: SceneLayout, supersample: int) -> dict:
             "scale": round(float(s), 12),
             "rotation": _rounded(R),
             "translation": _rounded(t),
-        })
+            # only for captures with their own appearance: other scenes' files stay as they were
+            **({} if cap.appearance_gains is None else {"appearance": {
+                "exposure": round(cap.exposure, 12), "white_balance": [round(g, 12) for g in cap.white_balance],
+                "applied": "linear RGB gains exposure * white_balance on the rendered images"}}),
+        })  # fmt: skip
     scene = layout.scene
     return {
         "format_version": FORMAT_VERSION,

@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from jaxtyping import Bool, Float
 
-from nerfuser_ns import sim3
+from nerfuser_ns import appearance, sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration.config import FORMAT_VERSION, RegistrationConfig, RegistrationError, json_float
@@ -54,6 +54,93 @@ def work_dir_for(output: Path | str) -> Path:
 def _matrix(T) -> Float[np.ndarray, "4 4"]:
     """A stored matrix: float64, rounded to 12 digits (as written)."""
     return np.round(np.asarray(T, dtype=np.float64), 12)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# What travels with the fused run: training cameras and colour maps
+
+
+@dataclass
+class TrainingCameras:
+    """One NeRF's training cameras in its own frame (as it finally saw them: camera-optimiser corrections applied),
+    for the ``coverage`` blend method; compact: a 3x4 pose and six intrinsics per camera."""
+
+    c2w: Float[np.ndarray, "n 4 4"]
+    """Camera-to-world, OpenGL axes, the NeRF's frame."""
+    intrinsics: Float[np.ndarray, "n 6"]
+    """``fx, fy, cx, cy, width, height`` in pixels."""
+
+    def to_record(self) -> dict:
+        return {"c2w": np.round(self.c2w[:, :3, :4], 6).tolist(), "intrinsics": np.round(self.intrinsics, 4).tolist()}
+
+    @classmethod
+    def from_record(cls, value: Any, where: str) -> TrainingCameras | None:
+        """Parsed and checked (None for null); :class:`RegistrationFileError` naming ``where`` when malformed."""
+        if value is None:
+            return None
+        try:
+            c2w = np.asarray(value["c2w"], dtype=np.float64)
+            intr = np.asarray(value["intrinsics"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as e:
+            raise RegistrationFileError(f"{where}: training_cameras needs c2w and intrinsics lists ({e})") from None
+        if c2w.ndim != 3 or c2w.shape[1:] not in ((3, 4), (4, 4)) or intr.shape != (len(c2w), 6):
+            raise RegistrationFileError(f"{where}: training_cameras must hold [n, 3, 4] c2w and [n, 6] intrinsics, "
+                                        f"got {c2w.shape} and {intr.shape}")  # fmt: skip
+        if not (np.isfinite(c2w).all() and np.isfinite(intr).all() and (intr[:, [0, 1, 4, 5]] > 0).all()):
+            raise RegistrationFileError(f"{where}: training_cameras must be finite, focal lengths and sizes positive")
+        full = np.tile(np.eye(4), (len(c2w), 1, 1))
+        full[:, :3, :4] = c2w[:, :3, :4]
+        return cls(full, intr)
+
+
+def training_cameras_of(renderer: Renderer) -> TrainingCameras | None:
+    """A renderer's training cameras (its ``training_poses`` with per-camera intrinsics from ``training_cameras()``
+    or the shared ``training_intrinsics()``); None when it has none or its dataset cannot be read."""
+    try:
+        poses = renderer.training_poses()
+        if poses is None or len(poses) == 0:
+            return None
+        if hasattr(renderer, "training_cameras"):
+            cams = renderer.training_cameras()
+            intr = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 1)
+                                   for x in (cams.fx, cams.fy, cams.cx, cams.cy, cams.width, cams.height)], axis=1)
+        else:  # fmt: skip
+            k = renderer.training_intrinsics() if hasattr(renderer, "training_intrinsics") else None
+            if k is None:
+                return None
+            intr = np.tile([k.fx, k.fy, k.cx, k.cy, k.width, k.height], (len(poses), 1)).astype(np.float64)
+    except (RegistrationError, ValueError, OSError):  # runs.RunLoadError is a ValueError
+        return None
+    poses = np.asarray(poses, dtype=np.float64)
+    return TrainingCameras(poses, intr) if len(intr) == len(poses) else None
+
+
+def colour_map_from_record(value: Any, where: str) -> Float[np.ndarray, "3 4"] | None:
+    """A stored colour map (3x4, linear RGB; None for null); :class:`RegistrationFileError` when malformed."""
+    if value is None:
+        return None
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
+    if m.shape != (3, 4) or not np.isfinite(m).all():
+        raise RegistrationFileError(f"{where}: colour_to_reference must be a finite 3x4 matrix")
+    return m
+
+
+def colour_maps_to_reference(
+    k: int, ref: int, checks: Sequence[CrossRenderCheck]
+) -> list[Float[np.ndarray, "3 4"] | None]:
+    """Per NeRF its colour map to the reference, chained along the self-checked pairs."""
+    pair_maps = {}
+    for c in checks:
+        pair_maps[(c.i, c.j)] = c.colour_j_to_i
+        pair_maps[(c.j, c.i)] = c.colour_i_to_j
+    return appearance.chain_to_reference(k, ref, pair_maps)
+
+
+def _colour_record(m: np.ndarray | None) -> list | None:
+    return None if m is None else np.round(m, 8).tolist()
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -112,8 +199,17 @@ class NerfResult:
     """The estimator's spread of per-camera scales (None in mode known-geometry, which has no cameras to compare)."""
     scale_outlier_fraction: float | None
     residuals: Residuals
+    training_cameras: TrainingCameras | None = None
+    """Its training cameras in its own frame (None: unknown, e.g. its dataset was gone; records before they were
+    written have none)."""
+    colour_to_reference: Float[np.ndarray, "3 4"] | None = None
+    """Affine colour map (linear RGB) from its renders to the reference's (:mod:`nerfuser_ns.appearance`); None:
+    not estimated."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
+
+    OPTIONAL = ("training_cameras", "colour_to_reference")
+    """Keys older records lack (read as None)."""
 
     def to_record(self) -> dict:
         return {
@@ -134,6 +230,10 @@ class NerfResult:
             "scale_spread": self.scale_spread,
             "scale_outlier_fraction": self.scale_outlier_fraction,
             "residuals": self.residuals.to_record(),
+            # Written only when known: a record without them reads back (and rewrites) unchanged.
+            **({} if self.training_cameras is None else {"training_cameras": self.training_cameras.to_record()}),
+            **({} if self.colour_to_reference is None
+               else {"colour_to_reference": _colour_record(self.colour_to_reference)}),
             **self.extra,
         }
 
@@ -141,8 +241,11 @@ class NerfResult:
     def from_record(cls, n: dict) -> NerfResult:
         known = {f for f in cls.__dataclass_fields__ if f != "extra"} | {"transform"}
         residuals = {k: n["residuals"][k] for k in Residuals.__dataclass_fields__}
+        where = f"nerfs entry {n.get('name')!r}"
         return cls(**{
-            **{k: n[k] for k in known - {"transform"}},
+            **{k: n[k] for k in known - {"transform", *cls.OPTIONAL}},
+            "training_cameras": TrainingCameras.from_record(n.get("training_cameras"), where),
+            "colour_to_reference": colour_map_from_record(n.get("colour_to_reference"), where),
             "T_to_reference": _matrix(n["T_to_reference"]), "T_to_sfm": _matrix(n["T_to_sfm"]),
             "views": ViewCounts(**n["views"]), "residuals": Residuals(**residuals),
             "extra": {k: v for k, v in n.items() if k not in known},
@@ -160,6 +263,18 @@ class PairCheck:
     views_per_direction: int
     threshold: float
     passed: bool
+    colour_j_to_i: list | None = None
+    """Affine colour map (3x4, linear RGB) from j's renders to i's, fitted on the cross-renders (None: not fitted)."""
+    colour_i_to_j: list | None = None
+    colour_pixels: int = 0
+    """Pixel pairs the colour maps were fitted on."""
+
+    def to_record(self) -> dict:
+        record = asdict(self)
+        if self.colour_pixels == 0 and self.colour_j_to_i is None and self.colour_i_to_j is None:
+            for key in ("colour_j_to_i", "colour_i_to_j", "colour_pixels"):  # not fitted: as records before them
+                del record[key]
+        return record
 
 
 @dataclass
@@ -175,7 +290,7 @@ class PairResult:
     def to_record(self, names: Sequence[str]) -> dict:
         return {"i": self.i, "j": self.j, "names": [names[self.i], names[self.j]], "T_j_to_i": self.T_j_to_i.tolist(),
                 "covisible_points": self.covisible_points,
-                "self_check": None if self.self_check is None else asdict(self.self_check)}  # fmt: skip
+                "self_check": None if self.self_check is None else self.self_check.to_record()}  # fmt: skip
 
     @classmethod
     def from_record(cls, p: dict) -> PairResult:
@@ -292,7 +407,8 @@ def _pair_results(
                 i, j, _matrix(sim3.relative_sim3(T_to_ref[i], T_to_ref[j])), int(overlap[i, j]),
                 None if c is None else PairCheck(
                     json_float(c.score), json_float(c.ncc_i_in_j), json_float(c.ncc_j_in_i), c.views,
-                    config.ncc_threshold, passed(c, config),
+                    config.ncc_threshold, passed(c, config), _colour_record(c.colour_j_to_i),
+                    _colour_record(c.colour_i_to_j), int(c.colour_pixels),
                 ),
             ))  # fmt: skip
     return pairs
@@ -317,6 +433,7 @@ def build_result(
     ``timings`` this run's seconds per step (render, features, matching, mapping, solve, self_check)."""
     k = len(renderers)
     pairs = _pair_results(T_to_ref, overlap, checks, config)
+    colours = colour_maps_to_reference(k, config.reference % k, checks)
     nerfs = []
     for i, (r, vs, ne) in enumerate(zip(renderers, views, estimates, strict=True)):
         est = ne.estimate
@@ -343,6 +460,7 @@ def build_result(
             scale_outlier_fraction=est.scale_outlier_fraction,
             residuals=Residuals(json_float(np.median(rot)), json_float(np.max(rot)), json_float(np.median(cen)),
                                 json_float(np.max(cen))),
+            training_cameras=training_cameras_of(r), colour_to_reference=colours[i],
         ))  # fmt: skip
     # What each step costs without the work folder (reused renders and SfM report the time they took when made).
     render_s = [vs.render_seconds for vs in views]
@@ -384,6 +502,7 @@ def build_known_geometry_result(
     k = len(renderers)
     ref = config.reference % k
     pairs = _pair_results(T_to_ref, overlap, checks, config)
+    colours = colour_maps_to_reference(k, ref, checks)
     change = sim3.sim3_errors(T_to_ref, T_initial)
     none = Residuals(None, None, None, None)
     nerfs = []
@@ -401,7 +520,7 @@ def build_known_geometry_result(
                 "r_deg": json_float(change.r_err_deg[i]), "t": json_float(change.t_err[i]),
                 "s": json_float(change.s_err[i])},
             cameras_used=int(views_matched[i]), scale_to_sfm=scale, scale_spread=None, scale_outlier_fraction=None,
-            residuals=none,
+            residuals=none, training_cameras=training_cameras_of(r), colour_to_reference=colours[i],
         ))  # fmt: skip
     render_s = [vs.render_seconds for vs in views]
     compute = {"render": None if None in render_s else float(sum(render_s)),
@@ -459,6 +578,10 @@ class NerfEntry:
     """The run's config.yml (absolute)."""
     nerf_to_common: Float[np.ndarray, "4 4"] = field(compare=False)
     """SIM(3) ``T`` with ``p_common = T @ [p_nerf, 1]`` (float64)."""
+    training_cameras: TrainingCameras | None = field(default=None, compare=False)
+    """Its training cameras in its own frame (the ``coverage`` blend method); None: unknown."""
+    colour_to_reference: Float[np.ndarray, "3 4"] | None = field(default=None, compare=False)
+    """Its colour map to the reference NeRF's colours (appearance matching); None: identity."""
 
     @property
     def scale(self) -> float:
@@ -490,6 +613,10 @@ class RegisteredNerf:
     """The stored 4x4 (or 3x4) SIM(3) into the common frame."""
     checkpoint: Any = None
     """The registered weights (file, step, sha256), when recorded."""
+    training_cameras: TrainingCameras | None = None
+    """Its training cameras, when recorded (checked)."""
+    colour_to_reference: Float[np.ndarray, "3 4"] | None = None
+    """Its colour map to the reference, when recorded (checked)."""
 
 
 def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
@@ -521,18 +648,23 @@ def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
         missing = [k for k in ("config", key) if k not in item]
         if missing:
             raise RegistrationFileError(f"{where}: missing {', '.join(missing)}")
-        yield RegisteredNerf(i, item.get("name"), item["config"], key, item[key], item.get("checkpoint"))
+        yield RegisteredNerf(i, item.get("name"), item["config"], key, item[key], item.get("checkpoint"),
+                             TrainingCameras.from_record(item.get("training_cameras"), where),
+                             colour_map_from_record(item.get("colour_to_reference"), where))  # fmt: skip
 
 
 def write_minimal_registration(nerfs: Sequence[NerfEntry], path: Path | str) -> Path:
-    """Write the minimal registration file ``{"nerfs": [{name, config, transform}]}`` (config paths as given),
-    atomically."""
-    data = {
-        "nerfs": [
-            {"name": n.name, "config": str(n.config_path), "transform": np.asarray(n.nerf_to_common).tolist()}
-            for n in nerfs
-        ]
-    }
+    """Write the minimal registration file ``{"nerfs": [{name, config, transform}]}`` (config paths as given; each
+    NeRF's ``training_cameras`` and ``colour_to_reference`` too, when known), atomically."""
+    data: dict[str, list] = {"nerfs": []}
+    for n in nerfs:
+        item: dict[str, Any] = {"name": n.name, "config": str(n.config_path),
+                                "transform": np.asarray(n.nerf_to_common).tolist()}  # fmt: skip
+        if n.training_cameras is not None:  # optional keys: only when known
+            item["training_cameras"] = n.training_cameras.to_record()
+        if n.colour_to_reference is not None:
+            item["colour_to_reference"] = _colour_record(n.colour_to_reference)
+        data["nerfs"].append(item)
     return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from jaxtyping import Float
 
-from nerfuser_ns import sim3
+from nerfuser_ns import appearance, sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.config import SUGGESTION, RegistrationConfig
 from nerfuser_ns.registration.render_cache import ViewSet, to_uint8
@@ -66,6 +66,13 @@ class CrossRenderCheck:
     """The same the other way round."""
     views: int
     """Views per direction."""
+    colour_j_to_i: Float[np.ndarray, "3 4"] | None = None
+    """Affine colour map (linear RGB, :mod:`nerfuser_ns.appearance`) from j's renders to i's at the same pixels (None:
+    too few opaque, unclipped pixels)."""
+    colour_i_to_j: Float[np.ndarray, "3 4"] | None = None
+    """The same from i's to j's."""
+    colour_pixels: int = 0
+    """Pixel pairs the colour maps were fitted on."""
 
     @property
     def score(self) -> float:
@@ -76,21 +83,25 @@ class CrossRenderCheck:
 
 def _cross_direction(
     src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
-    cfg: RegistrationConfig, acc_src: np.ndarray,
+    cfg: RegistrationConfig, acc_src: np.ndarray, colours: list | None = None,
 ) -> float:
-    scores = view_nccs(src, dst, T_src_to_dst, list(order)[: cfg.self_check_views], intrinsics, cfg, acc_src)
+    scores = view_nccs(src, dst, T_src_to_dst, list(order)[: cfg.self_check_views], intrinsics, cfg, acc_src,
+                       colours=colours)  # fmt: skip
     return float(np.median(scores[np.isfinite(scores)])) if np.isfinite(scores).any() else float("nan")
 
 
 def view_nccs(
     src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
-    cfg: RegistrationConfig, acc_src: np.ndarray | None = None, reduce: int = 1,
+    cfg: RegistrationConfig, acc_src: np.ndarray | None = None, reduce: int = 1, colours: list | None = None,
 ) -> Float[np.ndarray, " n"]:
     """NCC of each of ``src``'s views ``order`` against ``dst`` rendered at that view mapped by ``T_src_to_dst``
     (NaN where they see too little in common).
 
     ``reduce`` > 1 renders ``dst`` at 1/reduce of the size (reduce^2 times fewer rays) and compares it with ``src``'s
     renders block-averaged by that factor: the NCC block-averages by ``cfg.ncc_downsample`` anyway.
+
+    ``colours``, when given, receives per view ``(src's colours, dst's colours)`` at the pixels both render opaque
+    (accumulation >= :data:`nerfuser_ns.appearance.OPAQUE`): the appearance matching's samples.
     """
     order = list(order)
     if not order:
@@ -110,6 +121,11 @@ def view_nccs(
         if out.accumulation is not None:
             mask &= np.nan_to_num(out.accumulation[0]) >= 0.5
         own = np.stack([_blocks(c, reduce) for c in np.moveaxis(src.load_rgb(k), -1, 0)], axis=-1)
+        if colours is not None:
+            opaque = _blocks(acc_src[k], reduce) >= appearance.OPAQUE
+            if out.accumulation is not None:
+                opaque &= np.nan_to_num(out.accumulation[0]) >= appearance.OPAQUE
+            colours.append((own[opaque], rgb[opaque]))
         scores.append(ncc(own, rgb, mask, max(1, cfg.ncc_downsample // reduce)))
     return np.array(scores)
 
@@ -125,7 +141,8 @@ def cross_render_check(
 ) -> list[CrossRenderCheck]:
     """For each pair (i, j): map views of i through the estimate into j, render j there, NCC against i's renders.
 
-    ``view_order[(i, j)]`` lists i's views to use, best first (default: i's kept views, evenly spread).
+    ``view_order[(i, j)]`` lists i's views to use, best first (default: i's kept views, evenly spread). The same pixel
+    pairs, both directions pooled, give the pair's colour maps (:func:`nerfuser_ns.appearance.fit_colour_map`).
     """
     checks = []
     accs = [vs.load_accumulation() for vs in views]
@@ -139,9 +156,13 @@ def cross_render_check(
             idx = np.flatnonzero(views[a].kept)
             return idx[np.round(np.linspace(0, len(idx) - 1, min(cfg.self_check_views, len(idx)))).astype(int)]
 
-        s_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), intrinsics, cfg, accs[i])
-        s_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), intrinsics, cfg, accs[j])
-        checks.append(CrossRenderCheck(i, j, s_ij, s_ji, cfg.self_check_views))
+        i_in_j: list = []
+        j_in_i: list = []
+        s_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), intrinsics, cfg, accs[i], i_in_j)
+        s_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), intrinsics, cfg, accs[j], j_in_i)
+        ci, cj = appearance.pooled_pairs(i_in_j, j_in_i)
+        checks.append(CrossRenderCheck(i, j, s_ij, s_ji, cfg.self_check_views, appearance.fit_colour_map(cj, ci),
+                                       appearance.fit_colour_map(ci, cj), len(ci)))  # fmt: skip
     return checks
 
 

@@ -1,0 +1,107 @@
+"""Appearance matching (ours, beyond the paper): one affine colour map per NeRF, to the reference NeRF's colours.
+
+Captures filmed at different times differ in exposure and white balance; blending two NeRFs of them shows seams.
+Per NeRF ``i`` a map ``M_i = [A_i | b_i]`` (3x4) acts in LINEAR RGB:
+
+    c_ref_lin ≈ A_i c_i_lin + b_i,    c_lin = srgb_to_linear(c)   (nerfstudio NeRFs output sRGB-encoded colours)
+
+Estimation (registration, :mod:`nerfuser_ns.registration.self_check`): the cross-render self-check renders NeRF ``j``
+at NeRF ``i``'s poses mapped through the solution; where both renders are opaque (accumulation >= 0.95) and no
+channel is clipped, the pixel pairs give ``M_j->i`` by least squares (both directions of a pair pooled). The pairs'
+maps are chained along the self-check's spanning tree to the reference (:func:`chain_to_reference`).
+
+Application (:class:`nerfuser_ns.model.NerfuserModel`): every sample colour and background colour of NeRF ``i`` becomes
+``linear_to_srgb(clip(A_i srgb_to_linear(c) + b_i, 0, 1))`` before blending; the identity map leaves colours
+untouched (exactly: it is skipped).
+
+Pure math: torch for the model's colours (device-clean), numpy/float64 for the estimate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+IDENTITY: Float[np.ndarray, "3 4"] = np.hstack([np.eye(3), np.zeros((3, 1))])
+"""The identity colour map."""
+OPAQUE = 0.95
+"""Accumulation both renders need at a pixel for it to enter the fit."""
+CLIPPED = 254.5 / 255.0
+"""sRGB values at or above this (in either render) are saturated: their pixel is left out of the fit."""
+MIN_PIXELS = 64
+"""Fewer pixel pairs than this: no map (None)."""
+
+
+def srgb_to_linear(x: Tensor) -> Tensor:
+    """The sRGB transfer function inverted (IEC 61966-2-1), elementwise."""
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp(min=0.0) + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(x: Tensor) -> Tensor:
+    """The sRGB transfer function (IEC 61966-2-1), elementwise."""
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1.0 / 2.4) - 0.055)
+
+
+def apply_colour_map(rgb: Float[Tensor, "*bs 3"], colour_map: Float[Tensor, "3 4"]) -> Float[Tensor, "*bs 3"]:
+    """``linear_to_srgb(clip(A srgb_to_linear(rgb) + b, 0, 1))``."""
+    m = colour_map.to(rgb)
+    lin = srgb_to_linear(rgb) @ m[:, :3].T + m[:, 3]
+    return linear_to_srgb(lin.clamp(0.0, 1.0))
+
+
+def fit_colour_map(
+    source: Float[np.ndarray, "n 3"], target: Float[np.ndarray, "n 3"], min_pixels: int = MIN_PIXELS
+) -> Float[np.ndarray, "3 4"] | None:
+    """The affine map (in linear RGB) taking ``source`` sRGB colours to ``target`` ones, by least squares; pixels
+    saturated in either are left out. None when fewer than ``min_pixels`` remain or the fit is degenerate."""
+    src = np.asarray(source, dtype=np.float64).reshape(-1, 3)
+    dst = np.asarray(target, dtype=np.float64).reshape(-1, 3)
+    ok = (src < CLIPPED).all(-1) & (dst < CLIPPED).all(-1) & np.isfinite(src).all(-1) & np.isfinite(dst).all(-1)
+    if int(ok.sum()) < min_pixels:
+        return None
+    s_lin = srgb_to_linear(torch.from_numpy(src[ok])).numpy()
+    d_lin = srgb_to_linear(torch.from_numpy(dst[ok])).numpy()
+    design = np.hstack([s_lin, np.ones((len(s_lin), 1))])
+    solution, _, rank, _ = np.linalg.lstsq(design, d_lin, rcond=None)
+    if rank < 4 or not np.isfinite(solution).all():
+        return None
+    return solution.T.copy()  # [3, 4]: rows are output channels
+
+
+def compose(outer: Float[np.ndarray, "3 4"], inner: Float[np.ndarray, "3 4"]) -> Float[np.ndarray, "3 4"]:
+    """The map ``outer(inner(c))`` (both affine in linear RGB; the clip in between is dropped)."""
+    A = outer[:, :3] @ inner[:, :3]
+    return np.hstack([A, (outer[:, :3] @ inner[:, 3] + outer[:, 3])[:, None]])
+
+
+def chain_to_reference(
+    num_nerfs: int, reference: int, pair_maps: Mapping[tuple[int, int], Float[np.ndarray, "3 4"] | None]
+) -> list[Float[np.ndarray, "3 4"] | None]:
+    """Per NeRF its map to the reference's colours, composed along the pairs: ``pair_maps[(a, b)]`` maps b's colours
+    to a's. The reference gets the identity; a NeRF no chain of known maps reaches gets None."""
+    out: list[np.ndarray | None] = [None] * num_nerfs
+    out[reference] = IDENTITY.copy()
+    frontier = [reference]
+    while frontier:
+        a = frontier.pop(0)
+        for (x, y), m in pair_maps.items():
+            if x == a and m is not None and out[y] is None:
+                out[y] = compose(out[a], m)  # type: ignore[arg-type]
+                frontier.append(y)
+    return out
+
+
+def pooled_pairs(
+    i_in_j: Sequence[tuple[np.ndarray, np.ndarray]], j_in_i: Sequence[tuple[np.ndarray, np.ndarray]]
+) -> tuple[Float[np.ndarray, "n 3"], Float[np.ndarray, "n 3"]]:
+    """The colours of NeRF i and of NeRF j at the same pixels, from both directions of a self-check: ``i_in_j`` holds
+    (i's own render, j's render there) pairs, ``j_in_i`` (j's own, i's there)."""
+    ci = [a for a, _ in i_in_j] + [b for _, b in j_in_i]
+    cj = [b for _, b in i_in_j] + [a for a, _ in j_in_i]
+    empty = np.zeros((0, 3))
+    return (np.concatenate([empty] + [np.asarray(x).reshape(-1, 3) for x in ci]),
+            np.concatenate([empty] + [np.asarray(x).reshape(-1, 3) for x in cj]))  # fmt: skip

@@ -1,0 +1,85 @@
+"""Appearance matching (ours): the colour-map estimate, its algebra, and the generator's per-capture appearance."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from nerfuser_ns.appearance import (
+    IDENTITY,
+    apply_colour_map,
+    chain_to_reference,
+    compose,
+    fit_colour_map,
+    linear_to_srgb,
+    pooled_pairs,
+    srgb_to_linear,
+)
+from nerfuser_ns.bench import scenes
+
+KNOWN = np.array([[0.8, 0.05, 0.0, 0.01], [0.02, 1.1, 0.03, -0.01], [0.0, 0.1, 0.7, 0.02]])
+
+
+def test_the_estimate_recovers_a_known_affine_map():
+    rng = np.random.default_rng(0)
+    src = rng.uniform(0.25, 0.85, size=(2000, 3))  # no clipping under KNOWN
+    dst = apply_colour_map(torch.from_numpy(src), torch.from_numpy(KNOWN)).numpy()
+    np.testing.assert_allclose(fit_colour_map(src, dst), KNOWN, atol=1e-9)
+    # Saturated pixels (a clipped sky in one render) are left out, not fitted.
+    src[:300] = 1.0
+    dst[300:600] = 1.0
+    np.testing.assert_allclose(fit_colour_map(src, dst), KNOWN, atol=1e-9)
+    assert fit_colour_map(src[:40], dst[:40]) is None  # too few pixels
+    grey = np.repeat(rng.uniform(0.1, 0.9, size=(500, 1)), 3, axis=1)
+    assert fit_colour_map(grey, grey) is None  # grey only: the channels cannot be told apart
+
+
+def test_transfer_functions_and_map_algebra():
+    x = torch.linspace(0, 1, 1001, dtype=torch.float64)
+    torch.testing.assert_close(linear_to_srgb(srgb_to_linear(x)), x)
+    rgb = torch.rand(10, 3, dtype=torch.float64)
+    torch.testing.assert_close(apply_colour_map(rgb, torch.from_numpy(IDENTITY)), rgb)
+    inner = np.hstack([0.9 * np.eye(3), np.full((3, 1), 0.01)])
+    both = apply_colour_map(apply_colour_map(rgb * 0.5, torch.from_numpy(inner)), torch.from_numpy(KNOWN))
+    torch.testing.assert_close(apply_colour_map(rgb * 0.5, torch.from_numpy(compose(KNOWN, inner))), both)
+    maps = chain_to_reference(3, 1, {(1, 0): KNOWN, (0, 2): inner, (2, 0): None})
+    np.testing.assert_allclose(maps[1], IDENTITY)
+    np.testing.assert_allclose(maps[0], KNOWN)
+    np.testing.assert_allclose(maps[2], compose(KNOWN, inner))
+    assert chain_to_reference(2, 0, {(1, 0): KNOWN})[1] is None  # only 0 -> 1 known: 1 is unreached
+    ci, cj = pooled_pairs([(np.ones((2, 3)), np.zeros((2, 3)))], [(np.full((1, 3), 2.0), np.full((1, 3), 3.0))])
+    assert ci[:, 0].tolist() == [1, 1, 3] and cj[:, 0].tolist() == [0, 0, 2]
+
+
+def test_generated_captures_get_their_own_exposure_and_white_balance(tmp_path):
+    small = {"num_views": 4, "num_test_views": 1, "width": 24, "height": 18, "texels_per_metre": 8.0}
+    plain = scenes.make_layout("object-centric", seed=2, **small)
+    assert "appearance_jitter" not in plain.params  # the default leaves ground_truth.json as it was
+    assert all(c.appearance_gains is None for c in plain.captures)
+    jittered = scenes.make_layout("object-centric", seed=2, appearance_jitter=0.5, **small)
+    again = scenes.make_layout("object-centric", seed=2, appearance_jitter=0.5, **small)
+    gains = [c.appearance_gains for c in jittered.captures]
+    assert all(g is not None for g in gains) and not np.allclose(gains[0], gains[1])
+    np.testing.assert_array_equal(gains, [c.appearance_gains for c in again.captures])  # seeded
+    assert jittered.test.appearance_gains is None  # the test views show the scene as it is
+    for g in gains:
+        assert 2**-0.5 - 1e-9 <= g[1] <= 2**0.5 + 1e-9  # green carries the exposure alone
+    np.testing.assert_array_equal(jittered.captures[0].c2w_world, plain.captures[0].c2w_world)  # same cameras
+    with pytest.raises(ValueError, match="appearance_jitter"):
+        scenes.make_layout("object-centric", seed=2, appearance_jitter=-1.0, **small)
+
+    # Written images carry the gains; the estimate from the same view, neutral vs recorded, inverts them.
+    out = scenes.write_scene(jittered, tmp_path / "scene", supersample=1)
+    cap = jittered.captures[0]
+    view = scenes.render(jittered.scene, cap.c2w_world[0], cap.intrinsics, supersample=1).rgb
+    recorded = scenes.apply_appearance(view, cap.appearance_gains)
+    stored = np.asarray(scenes.Image.open(out / cap.name / "images" / "frame_00000.png"), dtype=np.float64) / 255
+    np.testing.assert_allclose(stored, recorded.numpy(), atol=0.6 / 255)
+    fit = fit_colour_map(recorded.numpy(), view.numpy(), min_pixels=16)
+    np.testing.assert_allclose(np.diag(fit[:, :3]), 1 / cap.appearance_gains, rtol=0.05)
+    gt = json.loads((out / "ground_truth.json").read_text())
+    assert gt["params"]["appearance_jitter"] == 0.5
+    assert gt["captures"][0]["appearance"]["exposure"] == pytest.approx(cap.exposure)
