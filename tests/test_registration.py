@@ -358,6 +358,18 @@ def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderer
         ScoreCommand(out, gt_transforms=gt, output=out).main(console)
 
 
+def test_the_file_keeps_matrix_rows_and_camera_lists_on_one_line(tmp_path):
+    """Hundreds of training cameras stay readable: lists of plain values are one line each; the JSON is unchanged."""
+    record = {"kind": "nerfuser_registration", "nerfs": [{"name": "a", "T_to_reference": np.eye(4).tolist(),
+              "training_cameras": {"c2w": np.zeros((300, 3, 4)).tolist(), "intrinsics": np.ones((300, 6)).tolist()},
+              "note": None, "empty": [], "nested": {}}]}  # fmt: skip
+    path = reg.write_registration(record, tmp_path / "r.json")
+    text = path.read_text()
+    assert json.loads(text) == record
+    assert "        [1.0, 0.0, 0.0, 0.0],\n" in text and "[1.0, 1.0, 1.0, 1.0, 1.0, 1.0]" in text
+    assert len(text.splitlines()) < 300 * 6 + 50  # 3 rows + 2 brackets per c2w, 1 line per intrinsics
+
+
 def test_scoring_a_hand_written_registration_with_mixed_3x4_and_4x4_truth(tmp_path):
     """The minimal registration a user writes (no "reference": the identity entry is it) against a 3x4 and a 4x4
     ground-truth file: both shapes are SIM(3)s, and the scores are right."""

@@ -543,10 +543,22 @@ def _load_json(path: Path) -> Any:
     return json.loads(Path(path).read_text())
 
 
+def dumps(value: Any, indent: int = 0) -> str:
+    """JSON with one item per line, except lists of plain values, which stay on one line (a matrix row, a camera's
+    intrinsics): a record with hundreds of cameras stays readable."""
+    pad, inner = " " * indent, " " * (indent + 2)
+    if isinstance(value, dict) and value:
+        items = [f"{inner}{json.dumps(str(k))}: {dumps(v, indent + 2)}" for k, v in value.items()]
+        return "{\n" + ",\n".join(items) + f"\n{pad}}}"
+    if isinstance(value, list) and any(isinstance(v, (dict, list)) for v in value):
+        return "[\n" + ",\n".join(f"{inner}{dumps(v, indent + 2)}" for v in value) + f"\n{pad}]"
+    return json.dumps(value)
+
+
 def write_registration(record: dict, path: Path | str) -> Path:
     """Write the registration record as JSON, atomically (temp file + rename)."""
     path = Path(path)
-    write_text_atomic(path, json.dumps(record, indent=2) + "\n")
+    write_text_atomic(path, dumps(record) + "\n")
     return path
 
 
@@ -665,7 +677,7 @@ def write_minimal_registration(nerfs: Sequence[NerfEntry], path: Path | str) -> 
         if n.colour_to_reference is not None:
             item["colour_to_reference"] = _colour_record(n.colour_to_reference)
         data["nerfs"].append(item)
-    return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
+    return write_text_atomic(path, dumps(data) + "\n")
 
 
 # ---------------------------------------------------------------------------------------------------------------------
