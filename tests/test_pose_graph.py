@@ -1,0 +1,170 @@
+"""The SIM(3) pose graph against ground truth: noisy dense graphs, a flipped edge, a tree, a disconnected graph, the
+choice of the reference, and the one line when GTSAM is missing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nerfuser_ns import sim3
+from nerfuser_ns.registration import pose_graph as pg
+
+
+def ground_truth(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """NeRF -> world SIM(3)s of a world scene of size ~1, and each NeRF's length scale (that size in its units)."""
+    T = sim3.random_sim3(rng, scale_range=(0.2, 5.0), size=(n,))
+    return T, 1.0 / sim3.decompose_sim3(T)[2]
+
+
+def measure(T_world, lengths, pairs, rng, rot_deg=0.2, trans=0.002, log_s=0.002, weight=100.0) -> list[pg.Edge]:
+    """Edges ``T_j->i`` from the truth with a small error about the world's origin, where the scene is (a pair
+    registers about the content it shares): ``T_i^-1 N T_j``, translations of N in world units."""
+    edges = []
+    for i, j in pairs:
+        noise = sim3.make_sim3(sim3.so3_exp(rng.normal(scale=np.radians(rot_deg), size=3)),
+                               rng.normal(scale=trans, size=3), np.exp(rng.normal(scale=log_s)))
+        edges.append(pg.Edge(i, j, sim3.invert_sim3(T_world[i]) @ noise @ T_world[j], weight))  # fmt: skip
+    return edges
+
+
+def errors_to_truth(T_hat: np.ndarray, T_world: np.ndarray, ref: int, lengths: np.ndarray):
+    """Rotation (deg), translation (relative to the reference's length scale) and scale errors per NeRF."""
+    err = sim3.sim3_errors(T_hat, sim3.to_reference_frame(T_world, ref))
+    return err.r_err_deg, err.t_err / lengths[ref], err.s_err
+
+
+DENSE_6 = [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4), (3, 5), (4, 5), (0, 5), (1, 4), (0, 3)]
+
+
+def test_noisy_dense_graph_beats_chaining_the_spanning_tree():
+    """Over four draws: every NeRF near the truth, and the solve's errors, summed, well below those of chaining the
+    spanning tree (one path of measurements per NeRF, where the solve averages over the cycles)."""
+    solved, chained = np.zeros(3), np.zeros(3)
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        T_world, lengths = ground_truth(rng, 6)
+        edges = measure(T_world, lengths, DENSE_6, rng)
+        out = pg.solve_pose_graph(6, edges, reference=0, lengths=lengths)
+        assert all(e.status == "kept" for e in out.edges) and not out.dropped
+        assert len(out.tree) == 5 and len(out.cycles) == len(DENSE_6) - 5 and all(c.passed for c in out.cycles)
+        r, t, s = errors_to_truth(out.T_to_reference, T_world, 0, lengths)
+        assert r.max() < 0.5 and t.max() < 0.02 and s.max() < 0.004, (seed, r, t, s)
+        solved += [r.sum(), t.sum(), s.sum()]
+        chained += [x.sum() for x in errors_to_truth(out.T_initial, T_world, 0, lengths)]
+        np.testing.assert_array_equal(out.T_to_reference[0], np.eye(4))
+        # cycle residuals are those of the noise (tenths of a degree), edge residuals after the solve as well
+        assert max(c.residual.rotation_deg for c in out.cycles) < 2.0
+        assert max(e.residual.rotation_deg for e in out.edges) < 1.0
+    assert (solved < 0.7 * chained).all(), (solved, chained)
+
+
+def test_flipped_edge_is_dropped_and_named():
+    """Repeated structure links one pair the wrong way round (a half turn) with many inliers: the cycles through it
+    fail, it is dropped (named in the reason), and the result is as without it."""
+    rng = np.random.default_rng(1)
+    T_world, lengths = ground_truth(rng, 6)
+    edges = measure(T_world, lengths, DENSE_6, rng)
+    bad = DENSE_6.index((1, 3))
+    flip = sim3.make_sim3(np.diag([-1.0, -1.0, 1.0]))
+    edges[bad] = pg.Edge(1, 3, edges[bad].T @ flip, weight=1000.0)  # the heaviest: the tree would take it
+    names = [f"n{k}" for k in range(6)]
+    out = pg.solve_pose_graph(6, edges, reference=0, lengths=lengths, names=names)
+    assert [(e.i, e.j) for e in out.dropped] == [(1, 3)]
+    assert out.edges[bad].reason.startswith("n1 / n3 disagrees with the rest")
+    assert out.edges[bad].residual.rotation_deg > 170  # against the solution: still the half turn
+    assert bad not in out.tree and all(e.status == "kept" for n, e in enumerate(out.edges) if n != bad)
+    r, t, s = errors_to_truth(out.T_to_reference, T_world, 0, lengths)
+    assert r.max() < 0.5 and t.max() < 0.02 and s.max() < 0.004, (r, t, s)
+
+
+def test_scale_outlier_in_a_triangle_rich_graph_is_dropped():
+    rng = np.random.default_rng(2)
+    T_world, lengths = ground_truth(rng, 5)
+    pairs = [(a, b) for a in range(5) for b in range(a + 1, 5)]  # complete graph
+    edges = measure(T_world, lengths, pairs, rng)
+    bad = pairs.index((2, 4))
+    edges[bad] = pg.Edge(2, 4, sim3.scale_matrix(1.5) @ edges[bad].T, weight=100.0)  # 50% scale error, 0 deg
+    out = pg.solve_pose_graph(5, edges, reference=2, lengths=lengths)
+    assert [(e.i, e.j) for e in out.dropped] == [(2, 4)]
+    r, t, s = errors_to_truth(out.T_to_reference, T_world, 2, lengths)
+    assert r.max() < 0.5 and t.max() < 0.02 and s.max() < 0.004, (r, t, s)
+
+
+def test_tree_solves_exactly_and_reports_edges_unverified():
+    rng = np.random.default_rng(3)
+    T_world, lengths = ground_truth(rng, 5)
+    tree = [(0, 1), (1, 2), (3, 1), (4, 3)]  # (3, 1): an edge stored against the direction of the chain
+    edges = measure(T_world, lengths, tree, rng, rot_deg=0, trans=0, log_s=0)
+    out = pg.solve_pose_graph(5, edges, reference=0, lengths=lengths)
+    assert all(e.status == "unverified" and "bridge" in e.reason for e in out.edges) and out.cycles == []
+    r, t, s = errors_to_truth(out.T_to_reference, T_world, 0, lengths)
+    assert r.max() < 1e-6 and t.max() < 1e-8 and s.max() < 1e-9, (r, t, s)
+    np.testing.assert_allclose(out.T_initial, out.T_to_reference, atol=1e-8)
+
+
+def test_bridge_beside_a_cycle_is_the_only_unverified_edge():
+    rng = np.random.default_rng(4)
+    T_world, lengths = ground_truth(rng, 4)
+    edges = measure(T_world, lengths, [(0, 1), (1, 2), (0, 2), (2, 3)], rng)
+    out = pg.solve_pose_graph(4, edges, lengths=lengths)
+    assert [e.status for e in out.edges] == ["kept", "kept", "kept", "unverified"]
+    assert [e.cycles_passed for e in out.edges] == [1, 1, 1, 0]
+
+
+def test_disconnected_graph_names_the_unreachable_nerfs():
+    rng = np.random.default_rng(5)
+    T_world, lengths = ground_truth(rng, 5)
+    edges = measure(T_world, lengths, [(0, 1), (1, 2), (3, 4)], rng)
+    names = ["a", "b", "c", "d", "e"]
+    with pytest.raises(pg.PoseGraphError, match=r"^d, e: no chain of registered pairs links them to the reference a$"):
+        pg.solve_pose_graph(5, edges, names=names)
+
+
+def test_reference_is_choosable():
+    rng = np.random.default_rng(6)
+    T_world, lengths = ground_truth(rng, 5)
+    edges = measure(T_world, lengths, [(0, 1), (1, 2), (2, 3), (3, 4), (0, 4), (1, 3)], rng)
+    a = pg.solve_pose_graph(5, edges, reference=0, lengths=lengths)
+    b = pg.solve_pose_graph(5, edges, reference=3, lengths=lengths)
+    np.testing.assert_array_equal(b.T_to_reference[3], np.eye(4))
+    r, t, s = errors_to_truth(b.T_to_reference, T_world, 3, lengths)
+    assert r.max() < 0.5 and t.max() < 0.02 and s.max() < 0.004, (r, t, s)
+    # the same solution in another frame: b = a re-expressed in NeRF 3's frame
+    err = sim3.sim3_errors(b.T_to_reference, sim3.to_reference_frame(a.T_to_reference, 3))
+    assert err.r_err_deg.max() < 1e-4 and err.s_err.max() < 1e-6
+
+
+@pytest.mark.parametrize(
+    ("edges", "message"),
+    [
+        ([pg.Edge(0, 0, np.eye(4))], r"^edge 0 \(0, 0\): needs two distinct NeRFs in 0..2$"),
+        ([pg.Edge(0, 1, np.eye(4)), pg.Edge(1, 0, np.eye(4))], r"^a / b: given twice \(edges 0 and 1\); keep one$"),
+        ([pg.Edge(0, 1, np.full((4, 4), np.nan))], r"^a / b: the transform is not a finite SIM\(3\) with s > 0$"),
+        ([pg.Edge(0, 1, np.eye(4), weight=0.0)], r"^a / b: weight 0.0 must be finite and > 0$"),
+    ],
+)
+def test_bad_edges_are_refused_with_one_line(edges, message):
+    with pytest.raises(pg.PoseGraphError, match=message):
+        pg.solve_pose_graph(3, edges, names=["a", "b", "c"])
+
+
+def test_missing_gtsam_is_one_line(monkeypatch):
+    monkeypatch.setattr(pg, "gtsam", None)
+    edges = [pg.Edge(0, 1, np.eye(4))]
+    message = r'^the pose-graph solve needs GTSAM: pip install "nerfuser_ns\[city\]"$'
+    with pytest.raises(pg.PoseGraphError, match=message):
+        pg.solve_pose_graph(2, edges)
+
+
+def test_cycle_composition_follows_the_edge_directions():
+    """A triangle given with edges in both directions composes to the identity; a 10 deg error on one edge shows as
+    10 deg on the cycle, whichever edge the cycle starts from."""
+    rng = np.random.default_rng(7)
+    T = sim3.random_sim3(rng, size=(3,))
+    edges = [pg.Edge(0, 1, sim3.relative_sim3(T[0], T[1])), pg.Edge(2, 1, sim3.relative_sim3(T[2], T[1])),
+             pg.Edge(0, 2, sim3.relative_sim3(T[0], T[2]))]  # fmt: skip
+    np.testing.assert_allclose(pg.compose_cycles(edges, [[0, 1, 2], [1, 0, 2]]), np.stack([np.eye(4)] * 2),
+                               atol=1e-9)  # fmt: skip
+    edges[1] = pg.Edge(2, 1, sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 0.0, 10.0]))) @ edges[1].T)
+    r, _, _ = pg.residuals(pg.compose_cycles(edges, [[0, 1, 2], [2, 1, 0]]), np.ones(2))
+    np.testing.assert_allclose(r, [10.0, 10.0], atol=1e-9)
