@@ -1,13 +1,19 @@
 """The SIM(3) pose graph against ground truth: noisy dense graphs, a flipped edge, a tree, a disconnected graph, the
-choice of the reference, and the one line when GTSAM is missing."""
+choice of the reference, and the one line when GTSAM is missing; then the graph mode end to end on ground-truth
+scene renderers (three street segments, the neighbours given, an unrelated NeRF)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from rich.console import Console
 
+from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
+from nerfuser_ns.bench import scenes
+from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.registration import pose_graph as pg
+from nerfuser_ns.scripts.register import print_summary
 
 
 def ground_truth(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -168,3 +174,114 @@ def test_cycle_composition_follows_the_edge_directions():
     edges[1] = pg.Edge(2, 1, sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 0.0, 10.0]))) @ edges[1].T)
     r, _, _ = pg.residuals(pg.compose_cycles(edges, [[0, 1, 2], [2, 1, 0]]), np.ones(2))
     np.testing.assert_allclose(r, [10.0, 10.0], atol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The graph mode end to end on ground-truth renderers (exact depth)
+
+W, H = 240, 180
+QUIET = Console(quiet=True)
+
+
+def graph_config(**kw) -> reg.RegistrationConfig:
+    sampling = reg.PoseSamplingConfig(source="training", width=W, height=H, fov_deg=60.0, max_training_poses=16)
+    return reg.RegistrationConfig(mode="graph", sampling=sampling, self_check_views=2, **kw)
+
+
+def truth_in(layout, ref: str, name: str) -> np.ndarray:
+    caps = {c.name: c for c in layout.captures}
+    return sim3.invert_sim3(caps[ref].capture_to_world) @ caps[name].capture_to_world
+
+
+@pytest.fixture(scope="module")
+def street():
+    layout = scenes.make_layout("street", seed=0, num_views=16, num_test_views=1, width=W, height=H, num_captures=3)
+    return layout, [SceneFrameRenderer.from_layout(layout, c.name) for c in layout.captures]
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    return tmp_path_factory.mktemp("graph_work")
+
+
+def test_three_street_nerfs_by_retrieval(street, work):
+    """Retrieval proposes every pair of three overlapping street segments; each registers, the triangle closes within
+    the thresholds, the solve matches the truth; the record has its graph section and reads back; the CLI prints it."""
+    layout, renderers = street
+    record = reg.register(renderers, graph_config(), work, QUIET)
+    names = [r.name for r in renderers]
+    for i in (1, 2):
+        err = sim3.sim3_errors(np.array(record["nerfs"][i]["T_to_reference"]), truth_in(layout, names[0], names[i]))
+        assert err.r_err_deg < 0.1 and err.t_err < 0.005 and err.s_err < 0.005, (i, err)
+    g = record["graph"]
+    assert g["candidates"] == {"source": "retrieval", "pairs": [[names[0], names[1]], [names[0], names[2]],
+                                                                [names[1], names[2]]]}  # fmt: skip
+    assert [e["status"] for e in g["edges"]] == ["kept"] * 3 and len(g["tree"]) == 2
+    assert all(e["self_check_ncc"] >= 0.4 and e["hypotheses"][e["chosen"]]["inliers"] >= 30 for e in g["edges"])
+    assert all(e["residual"]["rotation_deg"] < 0.1 for e in g["edges"])
+    (cycle,) = g["cycles"]
+    assert cycle["passed"] and sorted(cycle["names"]) == names and cycle["residual"]["rotation_deg"] < 0.2
+    assert [n["degree"] for n in g["nodes"]] == [2, 2, 2] and all(n["length_scale"] > 0 for n in g["nodes"])
+    assert "known_geometry" not in record and record["sfm"] is None
+    assert {n["estimator"] for n in record["nerfs"]} == {"graph"} and record["settings"]["mode"] == "graph"
+    assert reg.RegistrationResult.from_record(record).graph == g
+    console = Console(record=True, width=200)
+    print_summary(record, console)
+    text = console.export_text()
+    assert "Pose graph: 3 candidate pairs (retrieval)" in text and "cycles: 1 of 1 within the thresholds" in text
+
+
+def test_neighbours_given_form_a_tree_in_the_chosen_reference(street, work):
+    """Only the pairs named are registered (by name or index); a tree: both edges unverified, no cycle; the result
+    in the frame of the reference chosen (the middle segment)."""
+    layout, renderers = street
+    names = [r.name for r in renderers]
+    cfg = graph_config(reference=1)
+    cfg.graph.neighbours = (f"{names[0]}:{names[1]}", "2:1")
+    record = reg.register(renderers, cfg, work, QUIET)
+    g = record["graph"]
+    assert g["candidates"]["source"] == "neighbours given"
+    assert [e["names"] for e in g["edges"]] == [[names[0], names[1]], [names[1], names[2]]]
+    assert [e["status"] for e in g["edges"]] == ["unverified"] * 2 and g["cycles"] == []
+    assert record["reference"] == {"index": 1, "name": names[1]}
+    np.testing.assert_array_equal(record["nerfs"][1]["T_to_reference"], np.eye(4))
+    for i in (0, 2):
+        err = sim3.sim3_errors(np.array(record["nerfs"][i]["T_to_reference"]), truth_in(layout, names[1], names[i]))
+        assert err.r_err_deg < 0.1 and err.t_err < 0.005 and err.s_err < 0.005, (i, err)
+
+
+def test_an_unrelated_nerf_is_rejected_and_named(street, work):
+    """An object-centric NeRF beside the street: retrieval proposes it (generated scenes share textures), but no pair
+    with it passes the cross-render check, so no edge reaches it: one line naming it."""
+    _, renderers = street
+    other = scenes.make_layout("object-centric", seed=0, num_views=16, num_test_views=1, width=W, height=H)
+    renderers = [*renderers, SceneFrameRenderer.from_layout(other, "capture_a")]
+    with pytest.raises(reg.RegistrationError, match=r"^capture_a: no chain of registered pairs links it to the "
+                                                    r"reference capture_0 \(3 of 6 candidate pairs registered\); name "
+                                                    r"overlapping pairs with --graph.neighbours a:b"):
+        reg.register(renderers, graph_config(), work, QUIET)
+
+
+@pytest.mark.parametrize(
+    ("neighbours", "message"),
+    [
+        (("0-1",), r"^--graph.neighbours '0-1': expected a:b with two NeRF names or indices$"),
+        (("capture_0:nowhere",), r"^--graph.neighbours capture_0:nowhere: 'nowhere' is neither a NeRF name "
+                                 r"\(capture_0, capture_1, capture_2\) nor an index 0..2$"),
+        (("1:capture_1",), r"^--graph.neighbours 1:capture_1: a NeRF cannot be its own neighbour$"),
+    ],
+)
+def test_bad_neighbours_are_refused_before_rendering(street, tmp_path, neighbours, message):
+    cfg = graph_config()
+    cfg.graph.neighbours = neighbours
+    with pytest.raises(reg.RegistrationError, match=message):
+        reg.register(street[1], cfg, tmp_path, QUIET)
+    assert not (tmp_path / "renders").exists()
+
+
+def test_graph_mode_without_gtsam_is_one_line_before_rendering(street, tmp_path, monkeypatch):
+    monkeypatch.setattr(pg, "gtsam", None)
+    message = r'^the pose-graph solve needs GTSAM: pip install "nerfuser_ns\[city\]"$'
+    with pytest.raises(reg.RegistrationError, match=message):
+        reg.register(street[1], graph_config(), tmp_path, QUIET)
+    assert not (tmp_path / "renders").exists()

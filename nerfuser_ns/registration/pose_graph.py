@@ -69,6 +69,12 @@ class PoseGraphError(ValueError):
     """A pose graph that cannot be solved (bad edges, NeRFs no edge reaches, GTSAM missing); one-line message."""
 
 
+def require_gtsam() -> None:
+    """Raise :class:`PoseGraphError` with the install line when GTSAM is missing."""
+    if gtsam is None:
+        raise PoseGraphError(GTSAM_MISSING)
+
+
 @dataclass(frozen=True)
 class Edge:
     """One pairwise registration."""
@@ -415,8 +421,7 @@ def optimise(
 ) -> tuple[Float[np.ndarray, "n 4 4"], dict]:
     """Robust SIM(3) pose-graph optimisation of ``edges`` with GTSAM, from ``T_initial`` (every node reached), the
     reference held by a prior; returns ``T_to_reference`` (the reference's exactly the identity) and a summary."""
-    if gtsam is None:
-        raise PoseGraphError(GTSAM_MISSING)
+    require_gtsam()
     if robust not in ("huber", "cauchy"):
         raise PoseGraphError(f"robust loss {robust!r}: use huber or cauchy")
     graph = gtsam.NonlinearFactorGraph()
@@ -476,8 +481,7 @@ def solve_pose_graph(
     if lost:
         raise PoseGraphError(f"{', '.join(label[n] for n in lost)}: no chain of registered pairs links "
                              f"{'it' if len(lost) == 1 else 'them'} to the reference {label[reference]}")  # fmt: skip
-    if gtsam is None:
-        raise PoseGraphError(GTSAM_MISSING)
+    require_gtsam()
 
     kept, reasons, n_pass, bridges = consistency_check(num_nodes, edges, lengths, max_rotation_deg, max_translation,
                                                        max_log_scale, names)  # fmt: skip
