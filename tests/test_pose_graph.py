@@ -13,6 +13,7 @@ from nerfuser_ns import sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.registration import pose_graph as pg
+from nerfuser_ns.registration import retrieval
 from nerfuser_ns.scripts.register import print_summary
 
 
@@ -176,6 +177,20 @@ def test_cycle_composition_follows_the_edge_directions():
     np.testing.assert_allclose(r, [10.0, 10.0], atol=1e-9)
 
 
+def test_nerf_pair_scores_and_candidates():
+    """A pair scores the mean of its best view pairs (views left out do not count); candidates are the pairs above
+    the threshold plus each NeRF's best partners."""
+    sim = [[None] * 3 for _ in range(3)]
+    sim[0][1] = np.array([[0.9, 0.1], [0.5, -np.inf]])
+    sim[0][2] = np.array([[0.2, 0.1], [0.0, 0.3]])
+    sim[1][2] = np.array([[0.05, 0.0], [0.1, 0.0]])
+    scores = retrieval.nerf_pair_scores(sim, top=2)
+    np.testing.assert_allclose(scores, [[0, 0.7, 0.25], [0.7, 0, 0.075], [0.25, 0.075, 0]])
+    assert retrieval.candidate_nerf_pairs(scores, min_score=0.5, top_k=0) == [(0, 1)]
+    assert retrieval.candidate_nerf_pairs(scores, min_score=0.5, top_k=1) == [(0, 1), (0, 2)]
+    assert retrieval.candidate_nerf_pairs(scores, min_score=2.0, top_k=2) == [(0, 1), (0, 2), (1, 2)]
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # The graph mode end to end on ground-truth renderers (exact depth)
 
@@ -285,3 +300,18 @@ def test_graph_mode_without_gtsam_is_one_line_before_rendering(street, tmp_path,
     with pytest.raises(reg.RegistrationError, match=message):
         reg.register(street[1], graph_config(), tmp_path, QUIET)
     assert not (tmp_path / "renders").exists()
+
+
+def test_ray_tasks_give_the_serial_result(street, work, tmp_path):
+    """Renders, keypoints and pair registrations as Ray tasks on this machine, in a fresh work folder (every render
+    made by a task, written to the render cache), give the serial run's transforms and graph exactly."""
+    _, renderers = street
+    serial = reg.register(renderers, graph_config(), work, QUIET)
+    cfg = graph_config()
+    cfg.graph.executor = "ray"
+    distributed = reg.register(renderers, cfg, tmp_path, QUIET)
+    assert [n["T_to_reference"] for n in distributed["nerfs"]] == [n["T_to_reference"] for n in serial["nerfs"]]
+    assert distributed["graph"] == serial["graph"]
+    assert distributed["reused"]["renders"] == [False] * 3
+    assert all((tmp_path / "renders" / n["render_folder"].rsplit("/", 1)[-1] / "depth.npz").is_file()
+               for n in distributed["nerfs"])  # fmt: skip

@@ -195,6 +195,12 @@ class GraphConfig:
     """... or scales by more than this in ``|log s|``."""
     robust: Literal["huber", "cauchy"] = "huber"
     """Robust loss of the pose-graph solve."""
+    executor: Literal["serial", "ray"] = "serial"
+    """Where each NeRF's renders and keypoints and each pair's registration run: in this process, or as Ray tasks
+    (the city extra; the same results). The render cache on disk is what the tasks share."""
+    ray_address: str | None = None
+    """With ``executor ray``: the Ray cluster to join (e.g. ``auto``, ``ray://head:10001``; every worker must see the
+    work folder); default: start Ray on this machine."""
 
 
 @dataclass
@@ -291,6 +297,9 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
         (gc.max_cycle_rotation_deg > 0 and gc.max_cycle_translation > 0 and gc.max_cycle_log_scale > 0,
          "--graph.max-cycle-rotation-deg, max-cycle-translation and max-cycle-log-scale must be > 0"),
         (gc.robust in ("huber", "cauchy"), f"unknown --graph.robust {gc.robust!r}; use huber or cauchy"),
+        (gc.executor in ("serial", "ray"), f"unknown --graph.executor {gc.executor!r}; use serial or ray"),
+        (gc.ray_address is None or gc.executor == "ray",
+         f"--graph.ray-address {gc.ray_address} is for --graph.executor ray; pass both or neither"),
     ]
     for item in gc.neighbours:
         a, sep, b = str(item).partition(":")

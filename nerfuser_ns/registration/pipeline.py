@@ -32,6 +32,7 @@ from nerfuser_ns.registration.config import (
     CONSOLE,
     DEFAULT_RENDER_SIZE,
     SUGGESTION,
+    PoseSamplingConfig,
     RegistrationConfig,
     RegistrationError,
     RegistrationFailed,
@@ -39,6 +40,7 @@ from nerfuser_ns.registration.config import (
     json_matrix,
     validate_settings,
 )
+from nerfuser_ns.registration.distributed import Executor, SerialExecutor, make_executor
 from nerfuser_ns.registration.estimate import estimate_transforms
 from nerfuser_ns.registration.known_geometry import (
     Hypothesis,
@@ -448,21 +450,32 @@ def _check_depth(renderers: Sequence[Renderer]) -> None:
             raise RegistrationError(f"{r.name}: its renderer gives no depth; use --mode sfm")
 
 
+def _render_one(
+    renderer: Renderer, sampling: PoseSamplingConfig, renders_root: Path, console: Console | None
+) -> ViewSet:
+    """One NeRF's renders with depth, made or reused (a task of the graph mode: ``console`` None is quiet)."""
+    return render_views_cached(renderer, sampling, renders_root, console or Console(quiet=True), depth=True)
+
+
 def _render_and_lift(
     renderers: Sequence[Renderer], config: RegistrationConfig, work_dir: Path, console: Console, intr: Intrinsics,
-    min_views: int, timings: dict[str, float],
+    min_views: int, timings: dict[str, float], executor: Executor | None = None,
 ) -> tuple[list[ViewSet], list[LiftedFeatures]]:
-    """Render every NeRF with depth (or reuse the renders) and lift its keypoints to 3D; a NeRF with too few reliable
-    keypoints is an error naming it. Adds the steps' seconds to ``timings``."""
+    """Render every NeRF with depth (or reuse the renders) and lift its keypoints to 3D, one task per NeRF on
+    ``executor`` (default: in this process); a NeRF with too few reliable keypoints is an error naming it. Adds the
+    steps' seconds to ``timings``."""
+    executor = executor or SerialExecutor()
+    task_console = console if executor.name == "serial" else None
     kg = config.known_geometry
     t0 = time.perf_counter()
-    views = [render_views_cached(r, config.sampling, work_dir / "renders", console, depth=True) for r in renderers]
+    views = executor.map(_render_one, [(r, config.sampling, work_dir / "renders", task_console) for r in renderers])
     timings["render"] = time.perf_counter() - t0
     check_kept_views(views, min_views, config.sampling)
 
     t0 = time.perf_counter()
     with console.status("known geometry: SIFT keypoints lifted to 3D with the rendered depth"):
-        feats = [lift_keypoints(vs, intr, kg, config.sfm.num_threads, config.sfm.verbose) for vs in views]
+        feats = executor.map(lift_keypoints, [(vs, intr, kg, config.sfm.num_threads, config.sfm.verbose)
+                                              for vs in views])  # fmt: skip
     for vs, f in zip(views, feats, strict=True):
         if len(f.view) < kg.min_inliers:
             raise RegistrationError(
@@ -559,6 +572,53 @@ def register_known_geometry(
     return record
 
 
+@dataclass
+class PairOutcome:
+    """One candidate pair registered on known geometry: an edge (``choice``) or a rejection (``rejected``)."""
+
+    matches: Matches3D
+    hypotheses: list[Hypothesis]
+    choice: int | None
+    """Index of the chosen hypothesis (``T_b->a``), None when rejected."""
+    rejected: str | None
+    """Why the pair gives no edge."""
+    check: CrossRenderCheck | None
+    """The chosen hypothesis' cross-render check (None when none was run)."""
+
+
+def _register_pair(
+    renderers: Sequence[Renderer], views: Sequence[ViewSet], feats: Sequence[LiftedFeatures],
+    similarity: list[list[np.ndarray]], a: int, b: int, intr: Intrinsics, config: RegistrationConfig,
+    console: Console | None,
+) -> PairOutcome:
+    """Register NeRFs a < b on known geometry: 3D matches, hypotheses (competing ones scored by cross-rendering), the
+    choice, then the chosen one cross-rendered. A task of the graph mode (``console`` None: quiet)."""
+    console = console or Console(quiet=True)
+    kg = config.known_geometry
+    names = (renderers[a].name, renderers[b].name)
+    with console.status(f"graph: registering {names[0]} / {names[1]}"):
+        m = _match_nerfs(feats, views, similarity, a, b, config)
+    hyps = _pair_hypotheses(renderers, views, feats, m, intr, config, console)
+    if not hyps:
+        why = f"no SIM(3) has {kg.min_inliers} inlier 3D matches ({len(m.ia)} matches over {m.view_pairs} view pairs)"
+        return PairOutcome(m, hyps, None, why, None)
+    try:
+        n = _choose(hyps, names, config)
+    except RegistrationError as e:  # ambiguous: an edge nobody can trust, not a failure of the whole graph
+        return PairOutcome(m, hyps, None, str(e).split(": ", 1)[1], None)
+    if config.self_check_views <= 0:
+        return PairOutcome(m, hyps, n, None, None)
+    # shared textures can give unrelated NeRFs a confident SIM(3): cross-render the pair before it joins
+    T_pair = np.broadcast_to(np.eye(4), (len(renderers), 4, 4)).copy()
+    T_pair[b] = hyps[n].T
+    check = cross_render_check(renderers, views, T_pair, [(a, b)], intr, config,
+                               _check_views(feats, views, {(a, b): m}, {(a, b): hyps[n]}, [(a, b)]))[0]  # fmt: skip
+    if not passed(check, config):
+        what = "saw nothing in common" if not np.isfinite(check.score) else f"NCC {check.score:.2f}"
+        return PairOutcome(m, hyps, None, f"cross-render self-check failed ({what} < {config.ncc_threshold})", check)
+    return PairOutcome(m, hyps, n, None, check)
+
+
 def _parse_neighbours(items: Sequence[str], names: Sequence[str]) -> list[tuple[int, int]]:
     """``--graph.neighbours a:b ...`` as sorted index pairs (i < j); NeRFs by name or by index."""
     k = len(names)
@@ -602,12 +662,25 @@ def register_graph(
         require_gtsam()
     except PoseGraphError as e:
         raise RegistrationError(str(e)) from None
-    gc, kg = config.graph, config.known_geometry
+    gc = config.graph
+    given = _parse_neighbours(gc.neighbours, [r.name for r in renderers])
+    executor = make_executor(gc.executor, gc.ray_address)
+    try:
+        return _register_graph(renderers, config, work_dir, console, ref, min_views, intr, given, executor)
+    finally:
+        executor.close()
+
+
+def _register_graph(
+    renderers: Sequence[Renderer], config: RegistrationConfig, work_dir: Path, console: Console, ref: int,
+    min_views: int, intr: Intrinsics, given: list[tuple[int, int]], executor: Executor,
+) -> dict:
+    """:func:`register_graph` once its inputs are checked, with the executor its tasks run on."""
+    gc = config.graph
     names = [r.name for r in renderers]
     k = len(renderers)
-    given = _parse_neighbours(gc.neighbours, names)
     timings: dict[str, float] = {}
-    views, feats = _render_and_lift(renderers, config, work_dir, console, intr, min_views, timings)
+    views, feats = _render_and_lift(renderers, config, work_dir, console, intr, min_views, timings, executor)
 
     t0 = time.perf_counter()
     with console.status("graph: candidate NeRF pairs from the renders' visual words"):
@@ -625,31 +698,18 @@ def register_graph(
     choice: dict[tuple[int, int], int] = {}
     rejected: dict[tuple[int, int], str] = {}
     pair_checks: dict[tuple[int, int], CrossRenderCheck] = {}
-    for a, b in candidates:
-        with console.status(f"graph: registering {names[a]} / {names[b]}"):
-            m = matches[(a, b)] = _match_nerfs(feats, views, similarity, a, b, config)
-        hyps = hypotheses[(a, b)] = _pair_hypotheses(renderers, views, feats, m, intr, config, console)
-        if not hyps:
-            rejected[(a, b)] = (f"no SIM(3) has {kg.min_inliers} inlier 3D matches ({len(m.ia)} matches over "
-                                f"{m.view_pairs} view pairs)")  # fmt: skip
-            continue
-        try:
-            n = _choose(hyps, (names[a], names[b]), config)
-        except RegistrationError as e:  # ambiguous: an edge nobody can trust, not a failure of the whole graph
-            rejected[(a, b)] = str(e).split(": ", 1)[1]
-            continue
-        if config.self_check_views > 0:
-            # shared textures can give unrelated NeRFs a confident SIM(3): cross-render the pair before it joins
-            T_pair = np.broadcast_to(np.eye(4), (k, 4, 4)).copy()
-            T_pair[b] = hyps[n].T
-            check = cross_render_check(renderers, views, T_pair, [(a, b)], intr, config,
-                                       _check_views(feats, views, matches, {(a, b): hyps[n]}, [(a, b)]))[0]  # fmt: skip
-            pair_checks[(a, b)] = check
-            if not passed(check, config):
-                what = "saw nothing in common" if not np.isfinite(check.score) else f"NCC {check.score:.2f}"
-                rejected[(a, b)] = f"cross-render self-check failed ({what} < {config.ncc_threshold})"
-                continue
-        choice[(a, b)] = n
+    # one task per pair; in this process it reports progress on the console, as a Ray task it stays quiet
+    task_console = console if executor.name == "serial" else None
+    outcomes = executor.map(_register_pair, [(renderers, views, feats, similarity, a, b, intr, config, task_console)
+                                             for a, b in candidates])  # fmt: skip
+    for (a, b), out in zip(candidates, outcomes, strict=True):
+        matches[(a, b)], hypotheses[(a, b)] = out.matches, out.hypotheses
+        if out.check is not None:
+            pair_checks[(a, b)] = out.check
+        if out.rejected is not None:
+            rejected[(a, b)] = out.rejected
+        else:
+            choice[(a, b)] = out.choice
     timings["pairs"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
