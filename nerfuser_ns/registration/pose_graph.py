@@ -240,12 +240,6 @@ def chain_tree(
     return T
 
 
-def _tree_path(num_nodes: int, edges: Sequence[Edge], tree: Sequence[int], start: int, end: int) -> list[int]:
-    """Edge indices of the tree path from ``start`` to ``end``."""
-    adj = _adjacency(num_nodes, edges, np.isin(np.arange(len(edges)), list(tree)))
-    return _bfs_path(adj, start, end, exclude=-1) or []
-
-
 def _bfs_path(adj: list[dict[int, int]], start: int, end: int, exclude: int) -> list[int] | None:
     """Edge indices of a path with the fewest edges from ``start`` to ``end`` avoiding edge ``exclude`` (None: none)."""
     back = {start: (-1, -1)}
@@ -489,8 +483,10 @@ def solve_pose_graph(
     T_initial = chain_tree(num_nodes, edges, tree, reference)
 
     # fundamental cycles: each kept off-tree edge (i, j) closed by the tree path from j back to i
-    off_tree = [int(n) for n in np.flatnonzero(kept) if n not in set(tree)]
-    cycles = [[n, *_tree_path(num_nodes, edges, tree, edges[n].j, edges[n].i)] for n in off_tree]
+    in_tree = set(tree)
+    tree_adj = _adjacency(num_nodes, edges, np.isin(np.arange(len(edges)), tree))
+    off_tree = [int(n) for n in np.flatnonzero(kept) if n not in in_tree]
+    cycles = [[n, *(_bfs_path(tree_adj, edges[n].j, edges[n].i, exclude=-1) or [])] for n in off_tree]
     first = np.array([edges[c[0]].i for c in cycles], dtype=int)
     cr, ct, cs = residuals(compose_cycles(edges, cycles), lengths[first]) if cycles else (np.zeros(0),) * 3
     cfail = exceeds(cr, ct, cs, np.array([len(c) for c in cycles]), max_rotation_deg, max_translation, max_log_scale)
@@ -499,7 +495,6 @@ def solve_pose_graph(
     T, solver = optimise(num_nodes, used, T_initial, reference, lengths, robust, robust_k)
     er, et, es = edge_residuals(edges, T, lengths) if edges else (np.zeros(0),) * 3
 
-    in_tree = set(tree)
     results = []
     for n, e in enumerate(edges):
         if not kept[n]:
