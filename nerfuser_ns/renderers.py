@@ -100,6 +100,10 @@ class NerfstudioRenderer:
         self._loaded = None
         self._training_cameras = None
 
+    def __getstate__(self) -> dict:
+        # a copy sent to another process (a Ray task) loads the run there, lazily, instead of carrying the model
+        return {**self.__dict__, "_loaded": None}
+
     @functools.cached_property
     def data_to_nerf(self) -> np.ndarray | None:
         """SIM(3) from the run's stored dataset frame to its NeRF frame (reads the dataset: see runs)."""

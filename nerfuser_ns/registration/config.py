@@ -16,6 +16,7 @@ import numpy as np
 from rich.console import Console
 
 from nerfuser_ns.cameras import Intrinsics, intrinsics_from_fov
+from nerfuser_ns.registration.pose_graph import CYCLE_MAX_LOG_SCALE, CYCLE_MAX_ROTATION_DEG, CYCLE_MAX_TRANSLATION
 from nerfuser_ns.sampling import sample_hemisphere_poses
 
 FORMAT_VERSION = 1
@@ -168,18 +169,57 @@ class KnownGeometryConfig:
 
 
 @dataclass
+class GraphConfig:
+    """Registration of many NeRFs as a SIM(3) pose graph: candidate NeRF pairs from the renders' visual words (or the
+    neighbours given), each pair registered on known geometry (the known-geometry settings apply), the pairwise
+    SIM(3)s checked around cycles and solved together (:mod:`nerfuser_ns.registration.pose_graph`, GTSAM)."""
+
+    neighbours: tuple[str, ...] = ()
+    """NeRF pairs to register, as ``a:b`` with NeRF names or indices (e.g. ``--graph.neighbours 0:1 1:2``); when
+    given, only these pairs are registered and the retrieval below is skipped."""
+    score_views: int = 5
+    """A NeRF pair's retrieval score: the mean of its this-many most similar view pairs (tf-idf cosine)."""
+    min_similarity: float = 0.8
+    """NeRF pairs scoring at least this are candidates. Not calibrated on real captures: on generated scenes (whose
+    textures share photos) overlapping and unrelated pairs alike score 0.65-0.76, so there ``top_k`` decides."""
+    top_k: int = 3
+    """... and so are each NeRF's this-many best-scoring partners, whatever their score (every NeRF gets a chance;
+    bounds the pairs registered to about ``top_k`` per NeRF)."""
+    max_cycle_rotation_deg: float = CYCLE_MAX_ROTATION_DEG
+    """A cycle of three pairwise SIM(3)s whose composition rotates by more than this fails (longer cycles get
+    sqrt(length / 3) times each limit); the edge in most failing cycles is dropped."""
+    max_cycle_translation: float = CYCLE_MAX_TRANSLATION
+    """... or translates by more than this fraction of the first NeRF's length scale (the median distance of its
+    lifted keypoints from their cameras)."""
+    max_cycle_log_scale: float = CYCLE_MAX_LOG_SCALE
+    """... or scales by more than this in ``|log s|``."""
+    robust: Literal["huber", "cauchy"] = "huber"
+    """Robust loss of the pose-graph solve."""
+    executor: Literal["serial", "ray"] = "serial"
+    """Where each NeRF's renders and keypoints and each pair's registration run: in this process, or as Ray tasks
+    (the city extra; the same results). The render cache on disk is what the tasks share."""
+    ray_address: str | None = None
+    """With ``executor ray``: the Ray cluster to join (e.g. ``auto``, ``ray://head:10001``; every worker must see the
+    work folder); default: start Ray on this machine."""
+
+
+@dataclass
 class RegistrationConfig:
     """Registration from re-rendering: pose sampling, SfM, estimator and self-check settings."""
 
     sampling: PoseSamplingConfig = field(default_factory=PoseSamplingConfig)
     """Which views of each NeRF to render."""
-    mode: Literal["sfm", "known-geometry"] = "sfm"
+    mode: Literal["sfm", "known-geometry", "graph"] = "sfm"
     """sfm: the paper's one SfM over all renders, then a SIM(3) per NeRF from its cameras; known-geometry: no SfM, the
-    renders' keypoints lifted to 3D with the rendered depth at the known poses and matched across NeRFs (ours)."""
+    renders' keypoints lifted to 3D with the rendered depth at the known poses and matched across NeRFs (ours);
+    graph: known geometry on candidate NeRF pairs only, joined by a SIM(3) pose graph (ours, for many NeRFs; needs
+    the city extra)."""
     sfm: SfMConfig = field(default_factory=SfMConfig)
     """SfM settings (mode sfm)."""
     known_geometry: KnownGeometryConfig = field(default_factory=KnownGeometryConfig)
-    """Known-geometry settings (mode known-geometry)."""
+    """Known-geometry settings (modes known-geometry and graph)."""
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    """Pose-graph settings (mode graph)."""
     estimator: Literal["nerfuser", "nerfuser-median", "umeyama-ransac"] = "nerfuser"
     """nerfuser: the paper's median pairwise scale and robust (L1) bridge average; nerfuser-median: the bridges'
     element-wise median as in the paper's code; umeyama-ransac: Umeyama on camera centres with LO-RANSAC (pycolmap)."""
@@ -232,7 +272,8 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
         (config.umeyama_max_error > 0, "--umeyama-max-error must be > 0"),
         (config.sfm.exhaustive_max_images >= 2 and config.sfm.own_neighbors >= 1 and config.sfm.cross_views >= 1,
          "--sfm.exhaustive-max-images, --sfm.own-neighbors and --sfm.cross-views must be positive"),
-        (config.mode in ("sfm", "known-geometry"), f"unknown --mode {config.mode!r}; use sfm or known-geometry"),
+        (config.mode in ("sfm", "known-geometry", "graph"),
+         f"unknown --mode {config.mode!r}; use sfm, known-geometry or graph"),
     ]
     kg = config.known_geometry
     checks += [
@@ -249,6 +290,21 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
         (0.0 <= kg.min_hypothesis_fraction <= 1.0 and kg.ambiguity_margin >= 0,
          "--known-geometry.min-hypothesis-fraction must be in [0, 1] and --known-geometry.ambiguity-margin >= 0"),
     ]
+    gc = config.graph
+    checks += [
+        (gc.score_views >= 1 and gc.top_k >= 0, "--graph.score-views must be >= 1 and --graph.top-k >= 0"),
+        (math.isfinite(gc.min_similarity), "--graph.min-similarity must be finite"),
+        (gc.max_cycle_rotation_deg > 0 and gc.max_cycle_translation > 0 and gc.max_cycle_log_scale > 0,
+         "--graph.max-cycle-rotation-deg, max-cycle-translation and max-cycle-log-scale must be > 0"),
+        (gc.robust in ("huber", "cauchy"), f"unknown --graph.robust {gc.robust!r}; use huber or cauchy"),
+        (gc.executor in ("serial", "ray"), f"unknown --graph.executor {gc.executor!r}; use serial or ray"),
+        (gc.ray_address is None or gc.executor == "ray",
+         f"--graph.ray-address {gc.ray_address} is for --graph.executor ray; pass both or neither"),
+    ]
+    for item in gc.neighbours:
+        a, sep, b = str(item).partition(":")
+        checks.append((bool(sep and a and b and ":" not in b),
+                       f"--graph.neighbours {item!r}: expected a:b with two NeRF names or indices"))
     for ok, message in checks:
         if not ok:
             raise RegistrationError(message)

@@ -27,8 +27,15 @@ from jaxtyping import Bool, Float
 from nerfuser_ns import appearance, sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.registration.config import FORMAT_VERSION, RegistrationConfig, RegistrationError, json_float
+from nerfuser_ns.registration.config import (
+    FORMAT_VERSION,
+    RegistrationConfig,
+    RegistrationError,
+    json_float,
+    json_matrix,
+)
 from nerfuser_ns.registration.estimate import NerfEstimate
+from nerfuser_ns.registration.pose_graph import PoseGraphResult, Residual
 from nerfuser_ns.registration.render_cache import ViewSet, load_render_meta
 from nerfuser_ns.registration.self_check import CrossRenderCheck, passed
 from nerfuser_ns.registration.sfm import SfMResult
@@ -339,6 +346,9 @@ class RegistrationResult:
     known_geometry: dict | None = None
     """Mode known-geometry: per NeRF its keypoint counts, per pair its 3D matches and scored SIM(3) hypotheses, the
     joint solve (:func:`build_known_geometry_result`)."""
+    graph: dict | None = None
+    """Mode graph: the candidate NeRF pairs, per NeRF its length scale and transforms, per pair (edge) its status,
+    reason and residual, per cycle its residual (:func:`graph_section`)."""
     format_version: int = FORMAT_VERSION
     extra: dict[str, Any] = field(default_factory=dict)
     """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
@@ -364,6 +374,8 @@ class RegistrationResult:
         }
         if self.known_geometry is not None:
             record["known_geometry"] = self.known_geometry
+        if self.graph is not None:
+            record["graph"] = self.graph
         if self.sampling_choice is not None:
             record["sampling_choice"] = self.sampling_choice
         return {**record, **self.extra}
@@ -374,7 +386,7 @@ class RegistrationResult:
         kept in ``extra``. Raises :class:`RegistrationError` when a key is missing or malformed."""
         known = {"format_version", "kind", "created", "reference", "conventions", "nerfs", "pairs", "sfm",
                  "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice",
-                 "known_geometry"}  # fmt: skip
+                 "known_geometry", "graph"}  # fmt: skip
         try:
             if record.get("kind") != KIND:
                 raise ValueError(f"kind {record.get('kind')!r} is not {KIND!r}")
@@ -383,7 +395,7 @@ class RegistrationResult:
                 nerfs=[NerfResult.from_record(n) for n in record["nerfs"]],
                 pairs=[PairResult.from_record(p) for p in record["pairs"]],
                 sfm=None if record["sfm"] is None else SfMSummary(**record["sfm"]),
-                known_geometry=record.get("known_geometry"),
+                known_geometry=record.get("known_geometry"), graph=record.get("graph"),
                 refinement=record["refinement"], settings=record["settings"], timings_s=record["timings_s"],
                 compute_timings_s=record["compute_timings_s"], sampling_choice=record.get("sampling_choice"),
                 format_version=record["format_version"], extra={k: v for k, v in record.items() if k not in known},
@@ -492,13 +504,14 @@ def build_known_geometry_result(
     checks: Sequence[CrossRenderCheck],
     config: RegistrationConfig,
     timings: dict[str, float],
-    known_geometry: dict,
+    known_geometry: dict | None,
+    graph: dict | None = None,
     refinement: dict | None = None,
 ) -> RegistrationResult:
-    """The result of a known-geometry registration: ``T_initial`` the chosen pairwise hypotheses chained from the
-    reference, ``T_to_ref`` after the joint solve and the refinement (its summary: ``refinement``), ``views_matched``
-    per NeRF its views with inlier matches, ``overlap`` the inlier matches per NeRF pair, ``known_geometry`` the
-    mode's own summary (stored as is)."""
+    """The result of a known-geometry or graph registration: ``T_initial`` the chosen pairwise hypotheses chained
+    from the reference, ``T_to_ref`` after the joint (or pose-graph) solve and the refinement (its summary:
+    ``refinement``), ``views_matched`` per NeRF its views with inlier matches, ``overlap`` the inlier matches per NeRF
+    pair, ``known_geometry`` / ``graph`` the mode's own summary (stored as is)."""
     k = len(renderers)
     ref = config.reference % k
     pairs = _pair_results(T_to_ref, overlap, checks, config)
@@ -515,7 +528,7 @@ def build_known_geometry_result(
             T_to_reference=_matrix(T_to_ref[i]), scale_to_reference=scale, T_to_sfm=_matrix(T_to_ref[i]),
             views=ViewCounts(len(vs.c2w), int(vs.kept.sum()), int(views_matched[i]),
                              {s: vs.sources.count(s) for s in sorted(set(vs.sources))}),
-            render_folder=str(vs.folder), renders_reused=vs.reused, estimator="known-geometry",
+            render_folder=str(vs.folder), renders_reused=vs.reused, estimator=config.mode,
             refinement_change=None if i == ref else {
                 "r_deg": json_float(change.r_err_deg[i]), "t": json_float(change.t_err[i]),
                 "s": json_float(change.s_err[i])},
@@ -530,8 +543,64 @@ def build_known_geometry_result(
         sfm=None, refinement=refinement, settings=asdict(config),
         timings_s={step: round(s, 3) for step, s in timings.items()},
         compute_timings_s={step: None if s is None else round(s, 3) for step, s in compute.items()},
-        known_geometry=known_geometry,
+        known_geometry=known_geometry, graph=graph,
     )
+
+
+def _residual(r: Residual) -> dict:
+    return {"rotation_deg": json_float(r.rotation_deg), "translation": json_float(r.translation),
+            "log_scale": json_float(r.log_scale)}  # fmt: skip
+
+
+def graph_section(
+    *,
+    names: Sequence[str],
+    scores: Float[np.ndarray, "k k"],
+    candidates: Sequence[tuple[int, int]],
+    source: str,
+    pairs: dict[tuple[int, int], dict],
+    rejected: dict[tuple[int, int], str],
+    accepted: Sequence[tuple[int, int]],
+    solved: PoseGraphResult,
+    lengths: Float[np.ndarray, " k"],
+    keypoints: dict,
+) -> dict:
+    """The record's ``graph`` section. ``pairs`` holds each candidate pair's matching summary (3D matches,
+    hypotheses, the chosen one), ``rejected`` why a pair gave no edge, ``accepted[n]`` the pair of the pose graph's
+    edge n (``solved.edges[n]``)."""
+    edge_of = {pair: n for n, pair in enumerate(accepted)}
+    edges = []
+    for a, b in candidates:
+        info = {"i": a, "j": b, "names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b])}
+        n = edge_of.get((a, b))
+        if n is None:
+            info.update(status="rejected", reason=rejected[(a, b)], T_j_to_i=None, weight=None, in_tree=False,
+                        cycles_passed=0, residual=None)  # fmt: skip
+        else:
+            e = solved.edges[n]
+            chosen = pairs[(a, b)]["hypotheses"][pairs[(a, b)]["chosen"]]
+            info.update(status=e.status, reason=e.reason, T_j_to_i=chosen["T_j_to_i"], weight=e.weight,
+                        in_tree=e.in_tree, cycles_passed=e.cycles_passed, residual=_residual(e.residual))  # fmt: skip
+        edges.append({**info, **pairs[(a, b)]})
+    degree = np.zeros(len(names), int)
+    for pair, n in edge_of.items():
+        if solved.edges[n].status != "dropped":
+            degree[list(pair)] += 1
+    return {
+        "candidates": {"source": source, "pairs": [[names[a], names[b]] for a, b in candidates]},
+        "nodes": [{"name": name, "length_scale": json_float(lengths[i]), "degree": int(degree[i]),
+                   "T_initial": json_matrix(solved.T_initial[i]),
+                   "T_to_reference": json_matrix(solved.T_to_reference[i])} for i, name in enumerate(names)],
+        "edges": edges,
+        "cycles": [{"names": [names[v] for v in c.nodes],
+                    "pairs": [[names[accepted[n][0]], names[accepted[n][1]]] for n in c.edges],
+                    "residual": _residual(c.residual), "passed": c.passed} for c in solved.cycles],
+        "tree": [[names[accepted[n][0]], names[accepted[n][1]]] for n in solved.tree],
+        "solver": solved.solver,
+        "keypoints": keypoints,
+        "residuals": "rotation in degrees; translation over the length scale of the frame it is measured in (an "
+                     "edge's: its first NeRF's; a cycle's: its first NeRF's); log_scale |log s|",
+    }  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------------------------------

@@ -74,3 +74,28 @@ def candidate_pairs(
     for j, col in enumerate(similarity.T):
         pairs.update((int(i), j) for i in np.argsort(-col, kind="stable")[:per_view])
     return sorted(pairs)
+
+
+def nerf_pair_scores(similarity: Sequence[Sequence[np.ndarray]], top: int) -> Float[np.ndarray, "k k"]:
+    """How much two NeRFs' renders look alike: the mean of their ``top`` most similar view pairs (``-inf`` entries,
+    views left out, do not count; 0 when none is left). Symmetric, with 0 on the diagonal."""
+    k = len(similarity)
+    scores = np.zeros((k, k))
+    for a in range(k):
+        for b in range(a + 1, k):
+            s = np.asarray(similarity[a][b], dtype=np.float64).ravel()
+            s = s[np.isfinite(s)]
+            best = np.sort(s)[::-1][:top]
+            scores[a, b] = scores[b, a] = float(best.mean()) if best.size else 0.0
+    return scores
+
+
+def candidate_nerf_pairs(scores: Float[np.ndarray, "k k"], min_score: float, top_k: int) -> list[tuple[int, int]]:
+    """NeRF pairs (a < b) to register: those scoring at least ``min_score``, and each NeRF's ``top_k`` best-scoring
+    partners (ties: the lower index), sorted."""
+    k = len(scores)
+    pairs = {(a, b) for a in range(k) for b in range(a + 1, k) if scores[a, b] >= min_score}
+    for a in range(k):
+        others = [b for b in np.argsort(-scores[a], kind="stable") if b != a][:top_k]
+        pairs.update((min(a, int(b)), max(a, int(b))) for b in others)
+    return sorted(pairs)

@@ -39,7 +39,8 @@ ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
 
 @dataclass
 class RegisterCommand(RegistrationConfig):
-    """Register trained nerfstudio runs by re-rendering them and running one SfM over all the renders."""
+    """Register trained nerfstudio runs by re-rendering them: one SfM over all the renders (mode sfm), 3D matches of
+    the renders' keypoints (mode known-geometry) or pairwise registrations joined by a pose graph (mode graph)."""
 
     configs: list[Path] = field(default_factory=list)
     """config.yml of each run (at least 2), as ns-train wrote it."""
@@ -162,6 +163,9 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         if solve.get("used"):
             console.print(f"joint solve: {solve['matches']} matches, relative residual RMS "
                           f"{solve['rms_relative_before']:.4f} -> {solve['rms_relative_after']:.4f}")  # fmt: skip
+    graph = record.get("graph")
+    if graph is not None:
+        _print_graph(graph, console)
     t, made = record["timings_s"], record.get("compute_timings_s", {})
     reused = record.get("reused", {})
     sfm_reused = reused.get("sfm", False)
@@ -173,6 +177,31 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         for k, v in t.items()
     ]  # fmt: skip
     console.print("time (s): " + ", ".join(parts))
+
+
+def _print_graph(graph: dict, console: Console) -> None:
+    """The pose graph: per candidate pair its retrieval score, inliers, status and residual after the solve; the
+    cycles."""
+    cand = graph["candidates"]
+    table = Table(title=f"Pose graph: {len(cand['pairs'])} candidate pairs ({cand['source']})")
+    for col in ("pair", "score", "inliers", "status", "r res (deg)", "t res", "|log s| res", "reason"):
+        table.add_column(col, justify="left" if col in ("pair", "status", "reason") else "right")
+    colour = {"kept": "green", "unverified": "yellow", "dropped": "red", "rejected": "red"}
+    for e in graph["edges"]:
+        res = e["residual"] or {}
+        inliers = None if e["chosen"] is None else e["hypotheses"][e["chosen"]]["inliers"]
+        table.add_row(" / ".join(e["names"]), _fmt(e["retrieval_score"], ".2f"), _fmt(inliers, "d"),
+                      f"[{colour[e['status']]}]{e['status']}[/]", _fmt(res.get("rotation_deg"), ".3f"),
+                      _fmt(res.get("translation"), ".2e"), _fmt(res.get("log_scale"), ".2e"), e["reason"])  # fmt: skip
+    console.print(table)
+    cycles = graph["cycles"]
+    if cycles:
+        worst = max(cycles, key=lambda c: c["residual"]["rotation_deg"] or 0.0)
+        console.print(f"cycles: {sum(c['passed'] for c in cycles)} of {len(cycles)} within the thresholds; worst "
+                      f"{' > '.join(worst['names'])}: {_fmt(worst['residual']['rotation_deg'], '.3f')} deg, "
+                      f"translation {_fmt(worst['residual']['translation'], '.2e')}")  # fmt: skip
+    else:
+        console.print("[yellow]cycles: none; the registered pairs form a tree, no pair is verified by another[/]")
 
 
 def run(cmd: RegisterCommand, renderers: list | None = None) -> int:
