@@ -43,6 +43,9 @@ class BenchBlendingConfig:
     """Test views per scene."""
     quality: bool = True
     """Score the blend methods (--no-quality: only the render cost)."""
+    coverage: bool = True
+    """Also score ``coverage`` (ours: IDW-Sample weighted by the runs' training-camera coverage) beside the paper's
+    methods; the runs' training cameras are read from their datasets (the scene's capture folders)."""
     gamma: float | None = None
     """Blending rate (None: the paper's value for the scene's layout)."""
     tau: float | None = None
@@ -81,11 +84,12 @@ def _markdown(report: dict) -> str:
             lines.append("| --- |" + " --- |" * len(labels))
         for m in s["quality"][labels[0]] if labels else ():
             cells = []
+            name = f"{m} (ours)" if m == "coverage" else m
             for lbl in labels:
                 q = s["quality"][lbl][m]
                 lp = f" / {q['lpips']:.3f}" if report["lpips_available"] else ""
                 cells.append(f"{q['psnr']:.2f} / {q['ssim']:.3f}{lp}")
-            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
         for lbl in labels:
             q = s["quality"][lbl]
             lines.append("")
@@ -93,6 +97,8 @@ def _markdown(report: dict) -> str:
                 f"{lbl} T: IDW-Sample - Nearest = {q['idw-sample']['psnr'] - q['nearest']['psnr']:+.2f} dB, "
                 f"- IDW-2D = {q['idw-sample']['psnr'] - q['idw-2d']['psnr']:+.2f} dB, "
                 f"- IDW-3D = {q['idw-sample']['psnr'] - q['idw-3d']['psnr']:+.2f} dB."
+                + (f" Coverage (ours) - IDW-Sample = {q['coverage']['psnr'] - q['idw-sample']['psnr']:+.2f} dB."
+                   if "coverage" in q else "")
             )
         sweep = s.get("gamma_sweep") or {}
         if sweep:
@@ -143,7 +149,7 @@ def main(cfg: BenchBlendingConfig) -> None:
     from nerfuser_ns import runs, runtime
     from nerfuser_ns.bench import evaluation
     from nerfuser_ns.bench.evaluation import SceneRuns
-    from nerfuser_ns.blending import PAPER_OBJECT_CENTRIC
+    from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_OBJECT_CENTRIC
     from nerfuser_ns.files import write_text_atomic
 
     console = Console()
@@ -179,10 +185,13 @@ def main(cfg: BenchBlendingConfig) -> None:
         if scene.name in registrations:
             transforms["estimated"] = evaluation.registered_transforms(registrations[scene.name], scene)
         quality = {}
+        nerf_cameras = evaluation.training_cameras(scene, models) if cfg.coverage else None
+        methods = (*PAPER_BLEND_METHODS, "coverage") if cfg.coverage else PAPER_BLEND_METHODS
         for label, T in transforms.items() if cfg.quality else ():
             quality[label] = evaluation.blend_metrics(
-                models, T, cams, target, gamma=gamma, tau=tau, description=f"{scene.name}: {label} T"
-            )
+                models, T, cams, target, gamma=gamma, tau=tau, methods=methods, nerf_cameras=nerf_cameras,
+                description=f"{scene.name}: {label} T",
+            )  # fmt: skip
             console.print(label, {m: round(q["psnr"], 2) for m, q in quality[label].items()})
         sweep = {}
         if cfg.gammas:

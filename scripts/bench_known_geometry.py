@@ -111,6 +111,7 @@ def run_case(renderers, nerf_to_world, mode: str, count: int, work_dir: Path) ->
         # as computed: a reused SfM reports the time it took when it was made
         "after_render_s": round(sum(made.get(k) or 0.0 for k in STEPS_AFTER_RENDER), 2),
         "sampling": (record.get("sampling_choice") or {}).get("source"),
+        "refinement": {k: v for k, v in (record.get("refinement") or {}).items() if k != "change"} or None,
         "seconds": round(time.perf_counter() - t, 1),
     }  # fmt: skip
 

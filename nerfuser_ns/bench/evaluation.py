@@ -29,9 +29,10 @@ from torch import Tensor
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import metrics
-from nerfuser_ns.blending import BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
+from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.model import fuse_models, map_rays
+from nerfuser_ns.registration.record import TrainingCameras
 from nerfuser_ns.spec import read_registered_nerfs
 
 """Every blend method, in the paper's table order."""
@@ -161,11 +162,31 @@ def registered_transforms(registration_file: Path | str, scene: SceneRuns) -> li
     return [by_name[c] for c in scene.captures]
 
 
-def fused(models: Sequence[tuple[str, Model]], transforms: Sequence[np.ndarray], **overrides):  # noqa: ANN201 - NerfuserModel (imported lazily: model.py pulls in nerfstudio's heavy modules)
-    """A fused model of loaded sub-models under the given NeRF -> common transforms (``overrides``: config fields)."""
+def training_cameras(scene: SceneRuns, models: Sequence[tuple[str, Model]]) -> list[TrainingCameras]:
+    """Each run's training cameras in its NeRF frame, as the run finally saw them (camera-optimiser corrections
+    applied): what a registration records for the ``coverage`` blend method (ours)."""
+    out = []
+    for config, capture, (_, model) in zip(scene.configs, scene.capture_dirs(), models, strict=True):
+        cams = runs.training_cameras(config, data_override=capture)
+        c2w = runs.optimized_poses(model, cams.camera_to_worlds).detach().cpu().numpy()
+        full = np.tile(np.eye(4), (len(c2w), 1, 1))
+        full[:, :3, :4] = c2w
+        intr = torch.cat([x.reshape(-1, 1).float() for x in (cams.fx, cams.fy, cams.cx, cams.cy, cams.width,
+                                                             cams.height)], dim=1)  # fmt: skip
+        out.append(TrainingCameras(full, intr.numpy().astype(np.float64)))
+    return out
+
+
+def fused(  # noqa: ANN201 - NerfuserModel
+    models: Sequence[tuple[str, Model]], transforms: Sequence[np.ndarray],
+    cameras: Sequence[TrainingCameras] | None = None, **overrides,
+):
+    """A fused model of loaded sub-models under the given NeRF -> common transforms (``cameras``: their training
+    cameras, for ``coverage``; ``overrides``: config fields)."""
     if len(models) != len(transforms):
         raise EvaluationError(f"{len(models)} models but {len(transforms)} transforms")
-    return fuse_models([(n, m, T) for (n, m), T in zip(models, transforms, strict=True)], **overrides)
+    cams = [None] * len(models) if cameras is None else list(cameras)
+    return fuse_models([(n, m, T, c) for (n, m), T, c in zip(models, transforms, cams, strict=True)], **overrides)
 
 
 def blend_metrics(
@@ -175,14 +196,18 @@ def blend_metrics(
     target: Float[Tensor, "n h w 3"],
     gamma: float = 5.0,
     tau: float | None = PAPER_OBJECT_CENTRIC[1],
-    methods: Sequence[str] = BLEND_METHODS,
+    methods: Sequence[str] = PAPER_BLEND_METHODS,
     reference_nerf: int = 0,
     description: str = "blending",
+    nerf_cameras: Sequence[TrainingCameras] | None = None,
 ) -> dict[str, dict[str, float]]:
-    """PSNR/SSIM/LPIPS of every blend method on the given views, rendered in one pass (shared sub-model queries)."""
+    """PSNR/SSIM/LPIPS of every blend method on the given views, rendered in one pass (shared sub-model queries);
+    ``coverage`` (ours) needs the runs' ``nerf_cameras``."""
+    if "coverage" in methods and nerf_cameras is None:
+        raise EvaluationError("blend method 'coverage' needs the runs' training cameras (nerf_cameras)")
     model = fused(
-        models, transforms, gamma=gamma, tau=tau, reference_nerf=reference_nerf, render_all_methods=True,
-        share_outputs=False,
+        models, transforms, nerf_cameras, gamma=gamma, tau=tau, reference_nerf=reference_nerf,
+        render_all_methods=True, share_outputs=False,
     )  # fmt: skip
     keys = tuple(f"rgb_{m.replace('-', '_')}" for m in methods)
     with torch.no_grad():
@@ -360,7 +385,7 @@ def gamma_sweep(
     target: Float[Tensor, "n h w 3"],
     gammas: Sequence[float],
     tau: float | None = PAPER_OBJECT_CENTRIC[1],
-    methods: Sequence[str] = BLEND_METHODS,
+    methods: Sequence[str] = PAPER_BLEND_METHODS,
 ) -> dict[float, dict[str, dict[str, float]]]:
     """Metrics of every method for every gamma; the sub-models are queried once per ray chunk and the samples are
     re-blended per gamma (``NerfuserModel.blend_samples``), so a sweep costs little more than one render."""

@@ -97,6 +97,24 @@ def test_blend_metrics_nerf_method_is_the_reference_alone(tiny, models):
         evaluation.blend_metrics(models, T[:1], cams, target)
 
 
+def test_coverage_is_scored_with_the_runs_training_cameras(tiny, models):
+    """The kit scores ours (coverage) only with the runs' cameras, read as a registration records them."""
+    cams, target = tiny.test_views()
+    T = tiny.nerf_to_common()
+    nerf_cameras = evaluation.training_cameras(tiny, models)
+    for (_, model), tc, config, capture in zip(models, nerf_cameras, tiny.configs, tiny.capture_dirs(), strict=True):
+        parsed = runs.training_cameras(config, data_override=capture)
+        assert len(tc.c2w) == len(parsed) == model.num_train_data
+        np.testing.assert_allclose(tc.intrinsics[:, 0], parsed.fx[:, 0].numpy(), rtol=1e-6)
+    with pytest.raises(EvaluationError, match="needs the runs' training cameras"):
+        evaluation.blend_metrics(models, T, cams, target, methods=("idw-sample", "coverage"))
+    scores = evaluation.blend_metrics(models, T, cams, target, methods=("idw-sample", "coverage"),
+                                      nerf_cameras=nerf_cameras)  # fmt: skip
+    assert set(scores) == {"idw-sample", "coverage"} and np.isfinite(scores["coverage"]["psnr"])
+    # the cameras change the weights: not IDW-Sample's fallback
+    assert scores["coverage"]["psnr"] != pytest.approx(scores["idw-sample"]["psnr"], abs=1e-4)
+
+
 def test_measure_render_cost(tiny, models):
     cams, _ = tiny.test_views()
     cost = evaluation.measure_render_cost(models, tiny.nerf_to_common(), cams, num_rays=256, repeats=5)
