@@ -67,6 +67,9 @@ class BenchKnownGeometry:
     """Skip cases already in the output."""
     device: str = field(default_factory=runs.default_device)
     """Device the nerfstudio runs render on."""
+    refine: bool = True
+    """Refine each mode's transforms by its bundle adjustment (the default of ns-nerfuser-register); --no-refine is the
+    ablation."""
     fresh_sfm: bool = True
     """Scene cases: run the SfM again rather than reuse a cached one, so both modes' steps after rendering are timed
     in the same run (renders are reused by both: their time is the time they took when made)."""
@@ -88,8 +91,8 @@ def _practitioner_case(case_dir: Path, device: str):
     return renderers, [g["nerf_to_world"] for g in gt]
 
 
-def run_case(renderers, nerf_to_world, mode: str, count: int, work_dir: Path) -> dict:
-    config = RegistrationConfig(mode=mode, sampling=PoseSamplingConfig(max_training_poses=count))
+def run_case(renderers, nerf_to_world, mode: str, count: int, work_dir: Path, refine: bool = True) -> dict:
+    config = RegistrationConfig(mode=mode, sampling=PoseSamplingConfig(max_training_poses=count), refine=refine)
     t = time.perf_counter()
     try:
         record = registration.register(renderers, config, work_dir, Console(quiet=True))
@@ -194,8 +197,8 @@ def main(cfg: BenchKnownGeometry) -> None:
                 else:
                     renderers, nerf_to_world = _practitioner_case(source, cfg.device)
                     work = source / "registration_work"  # the practitioner benchmark's own renders are reused
-                result = run_case(renderers, nerf_to_world, mode, count, work)
-                result.update({"case": name, "kind": kind, "mode": mode, "count": count,
+                result = run_case(renderers, nerf_to_world, mode, count, work, cfg.refine)
+                result.update({"case": name, "kind": kind, "mode": mode, "count": count, "refine": cfg.refine,
                                "num_nerfs": len(renderers)})  # fmt: skip
                 console.print({k: v for k, v in result.items() if k not in ("compute_timings_s",)})
                 results.append(result)
