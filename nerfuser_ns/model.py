@@ -39,18 +39,26 @@ from typing import Any
 
 import numpy as np
 import torch
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Bool, Float
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
-from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.models.base_model import Model, ModelConfig
-from nerfstudio.utils import colormaps, colors
-from torch import Tensor, nn
+from nerfstudio.utils import colormaps
+from torch import Tensor
 from torch.nn import Parameter
 from torchmetrics.functional import structural_similarity_index_measure
 from torchmetrics.image import PeakSignalNoiseRatio
 
 from nerfuser_ns import blending, runtime
+from nerfuser_ns.adapters import (
+    ADAPTERS,
+    FrozenModels,
+    NerfactoAdapter,
+    NerfAdapter,
+    NerfSamples,
+    QueriedSamples,
+    make_adapter,
+)
 from nerfuser_ns.appearance import IDENTITY, apply_colour_map
 from nerfuser_ns.blending import BLEND_METHODS, PAPER_OBJECT_CENTRIC, SHARE_PALETTE, BlendMethod, BlendSettings
 from nerfuser_ns.coverage import CameraIndex, CoverageParams
@@ -58,138 +66,6 @@ from nerfuser_ns.registration.record import TrainingCameras
 from nerfuser_ns.runs import load_run
 from nerfuser_ns.spec import read_fusion_spec
 from nerfuser_ns.viewer import NerfuserSceneControl
-
-# ----------------------------------------------------------------------------------------------------------------------
-# Sub-model adapters
-
-
-@dataclass
-class NerfSamples:
-    """One NeRF's samples along a batch of rays, in ITS OWN frame's ray distances."""
-
-    starts: Float[Tensor, "num_rays num_samples"]
-    ends: Float[Tensor, "num_rays num_samples"]
-    weights: Float[Tensor, "num_rays num_samples"]
-    """Termination probabilities ``T_k alpha_k``."""
-    rgbs: Float[Tensor, "num_rays num_samples 3"]
-    background_rgb: Float[Tensor, "num_rays 3"]
-    """The colour its own renderer puts behind the samples (nerfacto "last_sample": the last sample's colour)."""
-
-
-@dataclass
-class QueriedSamples:
-    """One NeRF's samples for some or all rays of a batch, as the fused model queried them."""
-
-    samples: NerfSamples
-    """The samples, one row per queried ray."""
-    scale: Float[Tensor, "num_queried 1"]
-    """``k`` with ``t_nerf = k * t_common``, per queried ray."""
-    rows: Int[Tensor, " num_queried"] | None = None
-    """The batch rays queried, in order; None: all of them."""
-
-
-class NerfAdapter:
-    """The small interface the fused model needs from a sub-model (subclass it for other ray-marching models).
-
-    ``samples`` gets rays in the sub-model's own frame, nears/fars already set, and returns its samples.
-    """
-
-    def __init__(self, model: Model) -> None:
-        self.model = model
-
-    @classmethod
-    def supports(cls, model: Model) -> bool:
-        raise NotImplementedError
-
-    def collide(self, ray_bundle: RayBundle) -> RayBundle:
-        """Sets nears/fars as the sub-model would (its own collider, in its frame) unless already set."""
-        collider = getattr(self.model, "collider", None)
-        if collider is not None:
-            ray_bundle = collider(ray_bundle)
-        return ray_bundle
-
-    def samples(self, ray_bundle: RayBundle) -> NerfSamples:
-        raise NotImplementedError
-
-
-def _background(background_color: Any, rgbs: Tensor) -> Tensor:
-    """The background colour a nerfstudio RGBRenderer would use in eval, per ray."""
-    if background_color == "last_sample":
-        return rgbs[..., -1, :]
-    if background_color == "random" or background_color is None:
-        return torch.zeros_like(rgbs[..., -1, :])  # eval renders "random" as if on black
-    if isinstance(background_color, str):
-        background_color = colors.COLORS_DICT[background_color]
-    return torch.as_tensor(background_color, dtype=rgbs.dtype, device=rgbs.device).expand_as(rgbs[..., -1, :])
-
-
-class NerfactoAdapter(NerfAdapter):
-    """nerfacto and its family: ``proposal_sampler`` -> ``field.forward`` -> ``ray_samples.get_weights``."""
-
-    @classmethod
-    def supports(cls, model: Model) -> bool:
-        return all(hasattr(model, a) for a in ("proposal_sampler", "density_fns", "field", "renderer_rgb"))
-
-    def samples(self, ray_bundle: RayBundle) -> NerfSamples:
-        m = self.model
-        ray_samples, _, _ = m.proposal_sampler(ray_bundle, density_fns=m.density_fns)
-        field_outputs = m.field.forward(ray_samples, compute_normals=False)
-        weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
-        rgbs = torch.nan_to_num(field_outputs[FieldHeadNames.RGB])  # as RGBRenderer does in eval
-        return NerfSamples(
-            starts=ray_samples.frustums.starts[..., 0],
-            ends=ray_samples.frustums.ends[..., 0],
-            weights=weights[..., 0],
-            rgbs=rgbs,
-            background_rgb=_background(m.renderer_rgb.background_color, rgbs),
-        )
-
-
-ADAPTERS: list[type[NerfAdapter]] = [NerfactoAdapter]
-"""Adapter classes tried in order; append yours to support another model family."""
-
-
-def make_adapter(model: Model) -> NerfAdapter:
-    for cls in ADAPTERS:
-        if cls.supports(model):
-            return cls(model)
-    raise TypeError(
-        f"nerfuser: no adapter for {type(model).__name__}; supported: nerfacto-family models "
-        "(register a NerfAdapter subclass in nerfuser_ns.model.ADAPTERS)"
-    )
-
-
-class _FrozenModels(nn.Module):
-    """Holds the sub-models outside ``parameters()`` and ``state_dict()`` but moves them with ``.to()``.
-
-    They are rebuilt from their own runs at load time, so the fused checkpoint does not copy their weights, and the
-    optimizer sees no parameters. They always stay in eval mode.
-    """
-
-    def __init__(self, models: Sequence[Model]) -> None:
-        super().__init__()
-        self.models: list[Model] = list(models)  # a plain list: not registered as children
-        for m in self.models:
-            m.eval()
-            m.requires_grad_(False)
-
-    def _apply(self, fn, recurse: bool = True):  # noqa: ANN001 - torch's signature
-        seen: set[int] = set()
-        for m in self.models:
-            if id(m) not in seen:  # the same model may appear twice (tests fuse copies)
-                seen.add(id(m))
-                m._apply(fn)
-        return super()._apply(fn, recurse)
-
-    def train(self, mode: bool = True):
-        super().train(mode)
-        for m in self.models:
-            m.eval()
-        return self
-
-    def __len__(self) -> int:
-        return len(self.models)
-
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Ray mapping
@@ -309,7 +185,7 @@ class NerfuserModel(Model):
         if not entries:
             raise ValueError("nerfuser: no sub-models to fuse")
         self.nerf_names = [str(e[0]) for e in entries]
-        self.nerfs = _FrozenModels([e[1] for e in entries])
+        self.nerfs = FrozenModels([e[1] for e in entries])
         self.adapters = []
         for name, m in zip(self.nerf_names, self.nerfs.models, strict=True):
             try:

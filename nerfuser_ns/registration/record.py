@@ -1,4 +1,4 @@
-"""The registration file: the one module that builds, writes and reads it, and the work-folder convention.
+"""The registration file: the one module that defines, writes and reads it, and the work-folder convention.
 
 ``ns-nerfuser-register`` writes a JSON record (``kind: nerfuser_registration``): per NeRF its SIM(3)
 ``T_to_reference`` (``p_ref = T @ [p, 1]``, also stored as ``transform``, the key of the minimal hand-written form),
@@ -17,28 +17,20 @@ from __future__ import annotations
 import json
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 from jaxtyping import Bool, Float
 
-from nerfuser_ns import appearance, sim3
-from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns import appearance
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration.config import (
     FORMAT_VERSION,
-    RegistrationConfig,
     RegistrationError,
-    json_float,
-    json_matrix,
 )
-from nerfuser_ns.registration.estimate import NerfEstimate
-from nerfuser_ns.registration.pose_graph import PoseGraphResult, Residual
-from nerfuser_ns.registration.render_cache import ViewSet, load_render_meta
-from nerfuser_ns.registration.self_check import CrossRenderCheck, passed
-from nerfuser_ns.registration.sfm import SfMResult
+from nerfuser_ns.registration.render_cache import load_render_meta
+from nerfuser_ns.registration.self_check import CrossRenderCheck
 from nerfuser_ns.renderers import Renderer
 
 KIND = "nerfuser_registration"
@@ -58,7 +50,7 @@ def work_dir_for(output: Path | str) -> Path:
     return output.with_name(output.stem + WORK_DIR_SUFFIX)
 
 
-def _matrix(T) -> Float[np.ndarray, "4 4"]:
+def matrix(T) -> Float[np.ndarray, "4 4"]:
     """A stored matrix: float64, rounded to 12 digits (as written)."""
     return np.round(np.asarray(T, dtype=np.float64), 12)
 
@@ -146,7 +138,7 @@ def colour_maps_to_reference(
     return appearance.chain_to_reference(k, ref, pair_maps)
 
 
-def _colour_record(m: np.ndarray | None) -> list | None:
+def colour_record(m: np.ndarray | None) -> list | None:
     return None if m is None else np.round(m, 8).tolist()
 
 
@@ -240,7 +232,7 @@ class NerfResult:
             # Written only when known: a record without them reads back (and rewrites) unchanged.
             **({} if self.training_cameras is None else {"training_cameras": self.training_cameras.to_record()}),
             **({} if self.colour_to_reference is None
-               else {"colour_to_reference": _colour_record(self.colour_to_reference)}),
+               else {"colour_to_reference": colour_record(self.colour_to_reference)}),
             **self.extra,
         }
 
@@ -253,7 +245,7 @@ class NerfResult:
             **{k: n[k] for k in known - {"transform", *cls.OPTIONAL}},
             "training_cameras": TrainingCameras.from_record(n.get("training_cameras"), where),
             "colour_to_reference": colour_map_from_record(n.get("colour_to_reference"), where),
-            "T_to_reference": _matrix(n["T_to_reference"]), "T_to_sfm": _matrix(n["T_to_sfm"]),
+            "T_to_reference": matrix(n["T_to_reference"]), "T_to_sfm": matrix(n["T_to_sfm"]),
             "views": ViewCounts(**n["views"]), "residuals": Residuals(**residuals),
             "extra": {k: v for k, v in n.items() if k not in known},
         })  # fmt: skip
@@ -302,7 +294,7 @@ class PairResult:
     @classmethod
     def from_record(cls, p: dict) -> PairResult:
         check = p["self_check"]
-        return cls(p["i"], p["j"], _matrix(p["T_j_to_i"]), p["covisible_points"],
+        return cls(p["i"], p["j"], matrix(p["T_j_to_i"]), p["covisible_points"],
                    None if check is None else PairCheck(**check))  # fmt: skip
 
 
@@ -345,10 +337,10 @@ class RegistrationResult:
     """The automatic pose-source choice (``register`` adds it)."""
     known_geometry: dict | None = None
     """Mode known-geometry: per NeRF its keypoint counts, per pair its 3D matches and scored SIM(3) hypotheses, the
-    joint solve (:func:`build_known_geometry_result`)."""
+    joint solve (:func:`.assemble.build_known_geometry_result`)."""
     graph: dict | None = None
     """Mode graph: the candidate NeRF pairs, per NeRF its length scale and transforms, per pair (edge) its status,
-    reason and residual, per cycle its residual (:func:`graph_section`)."""
+    reason and residual, per cycle its residual (:func:`.assemble.graph_section`)."""
     format_version: int = FORMAT_VERSION
     extra: dict[str, Any] = field(default_factory=dict)
     """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
@@ -403,204 +395,6 @@ class RegistrationResult:
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise RegistrationError(f"not a registration record of format {FORMAT_VERSION} "
                                     f"({type(e).__name__}: {e})") from None  # fmt: skip
-
-
-def _pair_results(
-    T_to_ref: Float[np.ndarray, "k 4 4"], overlap: np.ndarray, checks: Sequence[CrossRenderCheck],
-    config: RegistrationConfig,
-) -> list[PairResult]:
-    """Every NeRF pair (i < j): its relative transform, its overlap and its self-check when it was checked."""
-    check_of = {(c.i, c.j): c for c in checks}
-    pairs = []
-    for i in range(len(T_to_ref)):
-        for j in range(i + 1, len(T_to_ref)):
-            c = check_of.get((i, j))
-            pairs.append(PairResult(
-                i, j, _matrix(sim3.relative_sim3(T_to_ref[i], T_to_ref[j])), int(overlap[i, j]),
-                None if c is None else PairCheck(
-                    json_float(c.score), json_float(c.ncc_i_in_j), json_float(c.ncc_j_in_i), c.views,
-                    config.ncc_threshold, passed(c, config), _colour_record(c.colour_j_to_i),
-                    _colour_record(c.colour_i_to_j), int(c.colour_pixels),
-                ),
-            ))  # fmt: skip
-    return pairs
-
-
-def build_result(
-    *,
-    renderers: Sequence[Renderer],
-    views: Sequence[ViewSet],
-    sfm: SfMResult,
-    estimates: Sequence[NerfEstimate],
-    T_to_ref: Float[np.ndarray, "k 4 4"],
-    T_to_C: Float[np.ndarray, "k 4 4"],
-    refinement: dict | None,
-    overlap: np.ndarray,
-    checks: Sequence[CrossRenderCheck],
-    config: RegistrationConfig,
-    intrinsics: Intrinsics,
-    timings: dict[str, float],
-) -> RegistrationResult:
-    """The result of the steps' outputs: ``T_to_C`` / ``T_to_ref`` are the final transforms (refined when refined),
-    ``timings`` this run's seconds per step (render, features, matching, mapping, solve, self_check)."""
-    k = len(renderers)
-    pairs = _pair_results(T_to_ref, overlap, checks, config)
-    colours = colour_maps_to_reference(k, config.reference % k, checks)
-    nerfs = []
-    for i, (r, vs, ne) in enumerate(zip(renderers, views, estimates, strict=True)):
-        est = ne.estimate
-        registered = sum(1 for n, kept in zip(vs.image_names, vs.kept, strict=True) if kept and n in sfm.c2w)
-        # SfM cameras against the final transform (the refined one, when refined).
-        rot, cen = sim3.pose_residuals(T_to_C[i], vs.c2w[est.used], ne.G_sfm[est.used])
-        config_path = getattr(r, "config_path", None)
-        nerfs.append(NerfResult(
-            name=r.name,
-            config=None if config_path is None else str(Path(config_path).absolute()),
-            checkpoint=r.checkpoint_identity() if hasattr(r, "checkpoint_identity") else None,
-            T_to_reference=_matrix(T_to_ref[i]),
-            scale_to_reference=float(sim3.decompose_sim3(T_to_ref[i])[2]),
-            T_to_sfm=_matrix(T_to_C[i]),
-            views=ViewCounts(len(vs.c2w), int(vs.kept.sum()), registered,
-                             {s: vs.sources.count(s) for s in sorted(set(vs.sources))}),
-            render_folder=str(vs.folder),
-            renders_reused=vs.reused,
-            estimator=est.method,
-            refinement_change=refinement["change"][i] if refinement and refinement["used"] else None,
-            cameras_used=est.num_cameras,
-            scale_to_sfm=est.scale,
-            scale_spread=est.scale_spread,
-            scale_outlier_fraction=est.scale_outlier_fraction,
-            residuals=Residuals(json_float(np.median(rot)), json_float(np.max(rot)), json_float(np.median(cen)),
-                                json_float(np.max(cen))),
-            training_cameras=training_cameras_of(r), colour_to_reference=colours[i],
-        ))  # fmt: skip
-    # What each step costs without the work folder (reused renders and SfM report the time they took when made).
-    render_s = [vs.render_seconds for vs in views]
-    compute = {"render": None if None in render_s else float(sum(render_s))}
-    compute.update({step: sfm.timings.get(step) for step in ("features", "matching", "mapping")})
-    compute.update({"solve": timings["solve"], "self_check": timings["self_check"]})
-    return RegistrationResult(
-        created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        reference=config.reference % k,
-        nerfs=nerfs,
-        pairs=pairs,
-        sfm=SfMSummary(sfm.num_images, len(sfm.c2w), sfm.matching, sfm.model_counts, sfm.num_points3D,
-                       json_float(sfm.mean_reprojection_error), sfm.reused, asdict(intrinsics)),
-        refinement=refinement,
-        settings=asdict(config),
-        timings_s={step: round(s, 3) for step, s in timings.items()},
-        compute_timings_s={step: None if s is None else round(s, 3) for step, s in compute.items()},
-    )
-
-
-def build_known_geometry_result(
-    *,
-    renderers: Sequence[Renderer],
-    views: Sequence[ViewSet],
-    T_to_ref: Float[np.ndarray, "k 4 4"],
-    T_initial: Float[np.ndarray, "k 4 4"],
-    views_matched: Sequence[int],
-    overlap: np.ndarray,
-    checks: Sequence[CrossRenderCheck],
-    config: RegistrationConfig,
-    timings: dict[str, float],
-    known_geometry: dict | None,
-    graph: dict | None = None,
-    refinement: dict | None = None,
-) -> RegistrationResult:
-    """The result of a known-geometry or graph registration: ``T_initial`` the chosen pairwise hypotheses chained
-    from the reference, ``T_to_ref`` after the joint (or pose-graph) solve and the refinement (its summary:
-    ``refinement``), ``views_matched`` per NeRF its views with inlier matches, ``overlap`` the inlier matches per NeRF
-    pair, ``known_geometry`` / ``graph`` the mode's own summary (stored as is)."""
-    k = len(renderers)
-    ref = config.reference % k
-    pairs = _pair_results(T_to_ref, overlap, checks, config)
-    colours = colour_maps_to_reference(k, ref, checks)
-    change = sim3.sim3_errors(T_to_ref, T_initial)
-    none = Residuals(None, None, None, None)
-    nerfs = []
-    for i, (r, vs) in enumerate(zip(renderers, views, strict=True)):
-        config_path = getattr(r, "config_path", None)
-        scale = float(sim3.decompose_sim3(T_to_ref[i])[2])
-        nerfs.append(NerfResult(
-            name=r.name, config=None if config_path is None else str(Path(config_path).absolute()),
-            checkpoint=r.checkpoint_identity() if hasattr(r, "checkpoint_identity") else None,
-            T_to_reference=_matrix(T_to_ref[i]), scale_to_reference=scale, T_to_sfm=_matrix(T_to_ref[i]),
-            views=ViewCounts(len(vs.c2w), int(vs.kept.sum()), int(views_matched[i]),
-                             {s: vs.sources.count(s) for s in sorted(set(vs.sources))}),
-            render_folder=str(vs.folder), renders_reused=vs.reused, estimator=config.mode,
-            refinement_change=None if i == ref else {
-                "r_deg": json_float(change.r_err_deg[i]), "t": json_float(change.t_err[i]),
-                "s": json_float(change.s_err[i])},
-            cameras_used=int(views_matched[i]), scale_to_sfm=scale, scale_spread=None, scale_outlier_fraction=None,
-            residuals=none, training_cameras=training_cameras_of(r), colour_to_reference=colours[i],
-        ))  # fmt: skip
-    render_s = [vs.render_seconds for vs in views]
-    compute = {"render": None if None in render_s else float(sum(render_s)),
-               **{step: s for step, s in timings.items() if step != "render"}}  # fmt: skip
-    return RegistrationResult(
-        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), reference=ref, nerfs=nerfs, pairs=pairs,
-        sfm=None, refinement=refinement, settings=asdict(config),
-        timings_s={step: round(s, 3) for step, s in timings.items()},
-        compute_timings_s={step: None if s is None else round(s, 3) for step, s in compute.items()},
-        known_geometry=known_geometry, graph=graph,
-    )
-
-
-def _residual(r: Residual) -> dict:
-    return {"rotation_deg": json_float(r.rotation_deg), "translation": json_float(r.translation),
-            "log_scale": json_float(r.log_scale)}  # fmt: skip
-
-
-def graph_section(
-    *,
-    names: Sequence[str],
-    scores: Float[np.ndarray, "k k"],
-    candidates: Sequence[tuple[int, int]],
-    source: str,
-    pairs: dict[tuple[int, int], dict],
-    rejected: dict[tuple[int, int], str],
-    accepted: Sequence[tuple[int, int]],
-    solved: PoseGraphResult,
-    lengths: Float[np.ndarray, " k"],
-    keypoints: dict,
-) -> dict:
-    """The record's ``graph`` section. ``pairs`` holds each candidate pair's matching summary (3D matches,
-    hypotheses, the chosen one), ``rejected`` why a pair gave no edge, ``accepted[n]`` the pair of the pose graph's
-    edge n (``solved.edges[n]``)."""
-    edge_of = {pair: n for n, pair in enumerate(accepted)}
-    edges = []
-    for a, b in candidates:
-        info = {"i": a, "j": b, "names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b])}
-        n = edge_of.get((a, b))
-        if n is None:
-            info.update(status="rejected", reason=rejected[(a, b)], T_j_to_i=None, weight=None, in_tree=False,
-                        cycles_passed=0, residual=None)  # fmt: skip
-        else:
-            e = solved.edges[n]
-            chosen = pairs[(a, b)]["hypotheses"][pairs[(a, b)]["chosen"]]
-            info.update(status=e.status, reason=e.reason, T_j_to_i=chosen["T_j_to_i"], weight=e.weight,
-                        in_tree=e.in_tree, cycles_passed=e.cycles_passed, residual=_residual(e.residual))  # fmt: skip
-        edges.append({**info, **pairs[(a, b)]})
-    degree = np.zeros(len(names), int)
-    for pair, n in edge_of.items():
-        if solved.edges[n].status != "dropped":
-            degree[list(pair)] += 1
-    return {
-        "candidates": {"source": source, "pairs": [[names[a], names[b]] for a, b in candidates]},
-        "nodes": [{"name": name, "length_scale": json_float(lengths[i]), "degree": int(degree[i]),
-                   "T_initial": json_matrix(solved.T_initial[i]),
-                   "T_to_reference": json_matrix(solved.T_to_reference[i])} for i, name in enumerate(names)],
-        "edges": edges,
-        "cycles": [{"names": [names[v] for v in c.nodes],
-                    "pairs": [[names[accepted[n][0]], names[accepted[n][1]]] for n in c.edges],
-                    "residual": _residual(c.residual), "passed": c.passed} for c in solved.cycles],
-        "tree": [[names[accepted[n][0]], names[accepted[n][1]]] for n in solved.tree],
-        "solver": solved.solver,
-        "keypoints": keypoints,
-        "residuals": "rotation in degrees; translation over the length scale of the frame it is measured in (an "
-                     "edge's: its first NeRF's; a cycle's: its first NeRF's); log_scale |log s|",
-    }  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -744,7 +538,7 @@ def write_minimal_registration(nerfs: Sequence[NerfEntry], path: Path | str) -> 
         if n.training_cameras is not None:  # optional keys: only when known
             item["training_cameras"] = n.training_cameras.to_record()
         if n.colour_to_reference is not None:
-            item["colour_to_reference"] = _colour_record(n.colour_to_reference)
+            item["colour_to_reference"] = colour_record(n.colour_to_reference)
         data["nerfs"].append(item)
     return write_text_atomic(path, dumps(data) + "\n")
 

@@ -24,14 +24,17 @@ from PIL import Image
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.config import (
     CONSOLE,
     FORMAT_VERSION,
     SUGGESTION,
     PoseSamplingConfig,
+    RegistrationConfig,
     RegistrationError,
     content_hash,
     json_matrix,
+    validate_settings,
 )
 from nerfuser_ns.renderers import Renderer
 from nerfuser_ns.sampling import sample_hemisphere_poses
@@ -252,3 +255,23 @@ def check_kept_views(views: Sequence[ViewSet], min_views: int, cfg: PoseSampling
                 f"{vs.name}: only {int(vs.kept.sum())} of {len(vs.c2w)} rendered views see enough (mean accumulation "
                 f">= {cfg.min_view_accumulation}); aim the views at the content: {SUGGESTION}"
             )
+
+
+def check_inputs(renderers: Sequence[Renderer], config: RegistrationConfig) -> tuple[int, int, Intrinsics]:
+    """Before anything is rendered: the NeRFs and settings make sense. Returns the reference index, the views each
+    NeRF needs in the SfM model, and the render intrinsics."""
+    k = len(renderers)
+    names = [r.name for r in renderers]
+    if k < 2:
+        raise RegistrationError(f"registration needs at least 2 NeRFs, got {k}")
+    if not -k <= config.reference < k:
+        raise RegistrationError(f"reference index {config.reference} out of range for {k} NeRFs")
+    if config.estimator not in ("nerfuser", "nerfuser-median", "umeyama-ransac"):
+        raise RegistrationError(f"unknown estimator {config.estimator!r}")
+    keys = [render_key(r, config.sampling) for r in renderers]
+    for a in range(k):
+        for b in range(a):
+            if keys[a] == keys[b]:
+                raise RegistrationError(f"{names[a]}: passed twice (same run as {names[b]}); pass distinct runs")
+    min_views = max(config.min_registered_views, 3 if config.estimator == "umeyama-ransac" else 2)
+    return config.reference % k, min_views, validate_settings(config)
