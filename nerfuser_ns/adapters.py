@@ -1,10 +1,13 @@
 """Sub-models inside a fused model: the adapters that query a nerfstudio model's ray samples (nerfacto's proposal
-sampler and field; append to :data:`ADAPTERS` for another family) and the holder that keeps the frozen sub-models out
-of the fused checkpoint."""
+sampler and field; append to :data:`ADAPTERS` for another family), the holder that keeps the frozen sub-models out
+of the fused checkpoint, and (ours) the bounded cache that loads them on first use."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import gc
+import weakref
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -14,6 +17,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.models.base_model import Model
 from nerfstudio.utils import colors
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -146,3 +150,79 @@ class FrozenModels(nn.Module):
 
     def __len__(self) -> int:
         return len(self.models)
+
+
+class ModelCache(nn.Module):
+    """Sub-models loaded on first use and kept in a least-recently-used cache of at most ``limit`` (ours).
+
+    ``loader(i)`` builds sub-model ``i`` (the fused model passes one that rebuilds the run on its current device).
+    :meth:`get` returns its adapter, loading it if needed; before a load, the least recently used models are dropped
+    so that no more than ``limit`` are ever resident, and their memory is released. Like :class:`FrozenModels`, the
+    models stay out of ``parameters()`` and ``state_dict()``, in eval mode, and move with ``.to()``.
+    ``loads`` and ``evictions`` count what happened; the first eviction logs one line.
+    """
+
+    def __init__(
+        self, count: int, loader: Callable[[int], Model], limit: int, names: Sequence[str] | None = None
+    ) -> None:
+        super().__init__()
+        if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+            raise ValueError(f"nerfuser: max_resident_nerfs must be a whole number >= 1 (or None: all), got {limit!r}")
+        self.count, self.loader, self.limit = count, loader, limit
+        self.names = [str(n) for n in names] if names is not None else [str(i) for i in range(count)]
+        self._resident: OrderedDict[int, NerfAdapter] = OrderedDict()  # least recently used first
+        self.loads = 0
+        self.evictions = 0
+
+    def get(self, i: int) -> NerfAdapter:
+        """Sub-model ``i``'s adapter, now the most recently used; loaded (after any eviction) if not resident."""
+        if not 0 <= i < self.count:
+            raise IndexError(f"nerfuser: no sub-model {i} (of {self.count})")
+        if i in self._resident:
+            self._resident.move_to_end(i)
+            return self._resident[i]
+        while len(self._resident) >= self.limit:  # evict first: never more than `limit` in memory, even mid-load
+            self._evict()
+        model = self.loader(i)
+        model.eval()
+        model.requires_grad_(False)
+        try:
+            adapter = make_adapter(model)
+        except TypeError as e:  # name the run: with several runs the model class alone does not say which
+            raise TypeError(f"run {self.names[i]!r}: {e}; its ray samples cannot be merged with the others'") from None
+        self._resident[i] = adapter
+        self.loads += 1
+        return adapter
+
+    def resident(self) -> list[int]:
+        """The resident sub-models, least recently used first."""
+        return list(self._resident)
+
+    def _evict(self) -> None:
+        i, adapter = self._resident.popitem(last=False)
+        on_cuda = any(p.is_cuda for p in adapter.model.parameters())
+        model = weakref.ref(adapter.model)
+        del adapter
+        self.evictions += 1
+        if self.evictions == 1:
+            CONSOLE.print(f"nerfuser: more than {self.limit} sub-models needed: evicting the least recently used "
+                          f"({self.names[i]!r}); evicted ones are reloaded from their runs when needed again "
+                          "(slower; raise max_resident_nerfs if memory allows)")  # fmt: skip
+        if model() is not None:  # held by reference cycles: free the weights now, not at some later collection
+            gc.collect()
+        if on_cuda:
+            torch.cuda.empty_cache()
+
+    def _apply(self, fn, recurse: bool = True):  # noqa: ANN001 - torch's signature
+        for adapter in self._resident.values():
+            adapter.model._apply(fn)
+        return super()._apply(fn, recurse)
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for adapter in self._resident.values():
+            adapter.model.eval()
+        return self
+
+    def __len__(self) -> int:
+        return self.count

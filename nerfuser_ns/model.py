@@ -53,6 +53,7 @@ from nerfuser_ns import blending, runtime
 from nerfuser_ns.adapters import (
     ADAPTERS,
     FrozenModels,
+    ModelCache,
     NerfactoAdapter,
     NerfAdapter,
     NerfSamples,
@@ -156,6 +157,13 @@ class NerfuserModelConfig(ModelConfig):
     fusion_spec: Path | None = None
     """The fusion spec, read when the datamanager passes none (e.g. the model loaded alone by runs.load_run);
     ns-train nerfuser records --data here."""
+    max_resident_nerfs: int | None = None
+    """Ours: at most this many sub-models in memory. None (the default): all are loaded at setup and stay resident.
+    A number >= 1: each is loaded from its run on the model's device the first time a ray batch needs it (the
+    distance test decides), and the least recently used are dropped to make room, so many NeRFs render in the memory
+    of a few; a batch needing more is queried one NeRF at a time. The price: a dropped NeRF is reloaded from its
+    checkpoint when needed again. Sub-models passed already loaded (``metadata["nerfuser_models"]``) always stay
+    resident: there is nothing to reload them from. See docs/many_nerfs.md."""
 
 
 class NerfuserModel(Model):
@@ -166,6 +174,10 @@ class NerfuserModel(Model):
     ``(name, Model, nerf_to_common[, training_cameras[, colour_to_reference]])`` (cameras as
     :class:`~nerfuser_ns.registration.record.TrainingCameras` or :class:`~nerfuser_ns.coverage.CameraIndex` in the
     NeRF's frame, the colour map 3x4), passes already loaded models instead (tests, scripts).
+
+    With ``max_resident_nerfs`` set, sub-models from the spec are not loaded at setup but by :attr:`nerf_cache`
+    (a :class:`~nerfuser_ns.adapters.ModelCache`) when a ray batch first needs them; :attr:`nerfs` and
+    :attr:`adapters` are then None.
     """
 
     config: NerfuserModelConfig
@@ -174,24 +186,35 @@ class NerfuserModel(Model):
         super().populate_modules()
         runtime.install()
         metadata = self.kwargs.get("metadata") or {}
+        limit = self.config.max_resident_nerfs
+        self.nerf_cache: ModelCache | None = None
         if metadata.get("nerfuser_models") is not None:
             entries = list(metadata["nerfuser_models"])
         elif metadata.get("nerfuser") is not None or self.config.fusion_spec is not None:
             spec = metadata.get("nerfuser") or read_fusion_spec(self.config.fusion_spec, register=False)
-            entries = [(n.name, load_run(n.config_path, device="cpu").model, n.nerf_to_common, n.training_cameras,
-                        n.colour_to_reference) for n in spec.nerfs]  # fmt: skip
+            # With a limit, nothing is loaded here: all the setup needs (transforms, cameras, colour maps) is in the
+            # spec, and the camera-index range is read from the model once it is loaded.
+            entries = [(n.name, None if limit is not None else load_run(n.config_path, device="cpu").model,
+                        n.nerf_to_common, n.training_cameras, n.colour_to_reference) for n in spec.nerfs]  # fmt: skip
+            if limit is not None:
+                paths = [n.config_path for n in spec.nerfs]
+                self.nerf_cache = ModelCache(len(paths), lambda i: load_run(paths[i], device=self.device).model,
+                                             limit, names=[n.name for n in spec.nerfs])  # fmt: skip
         else:
             raise ValueError("nerfuser: no sub-models; pass the fusion spec (--data, or --pipeline.model.fusion-spec)")
         if not entries:
             raise ValueError("nerfuser: no sub-models to fuse")
         self.nerf_names = [str(e[0]) for e in entries]
-        self.nerfs = FrozenModels([e[1] for e in entries])
-        self.adapters = []
-        for name, m in zip(self.nerf_names, self.nerfs.models, strict=True):
-            try:
-                self.adapters.append(make_adapter(m))
-            except TypeError as e:  # name the run: with several runs the model class alone does not say which
-                raise TypeError(f"run {name!r}: {e}; its ray samples cannot be merged with the others'") from None
+        self.nerfs: FrozenModels | None = None
+        self.adapters: list[NerfAdapter] | None = None
+        if self.nerf_cache is None:
+            self.nerfs = FrozenModels([e[1] for e in entries])
+            self.adapters = []
+            for name, m in zip(self.nerf_names, self.nerfs.models, strict=True):
+                try:
+                    self.adapters.append(make_adapter(m))
+                except TypeError as e:  # name the run: with several runs the model class alone does not say which
+                    raise TypeError(f"run {name!r}: {e}; its ray samples cannot be merged with the others'") from None
         T = torch.tensor(np.stack([np.asarray(e[2], dtype=np.float64) for e in entries]), dtype=torch.float64)
         scales = torch.linalg.det(T[:, :3, :3]).pow(1.0 / 3.0)
         T_inv = torch.linalg.inv(T)
@@ -225,7 +248,13 @@ class NerfuserModel(Model):
 
     @property
     def num_nerfs(self) -> int:
-        return len(self.adapters)
+        return len(self.nerf_names)
+
+    def adapter(self, i: int) -> NerfAdapter:
+        """Sub-model ``i``'s adapter; with ``max_resident_nerfs``, loaded now if it is not resident."""
+        if self.nerf_cache is not None:
+            return self.nerf_cache.get(i)
+        return self.adapters[i]  # type: ignore[index]
 
     def set_blend(self, **changes: Any) -> BlendSettings:
         """Change blend settings (``method``, ``gamma``, ``tau``, ``reference_nerf``): checked here, once; ValueError
@@ -303,7 +332,8 @@ class NerfuserModel(Model):
         queried at all (None), one used on some rays only on those. None queries every NeRF on every ray.
         """
         out: list[QueriedSamples | None] = []
-        for i, adapter in enumerate(self.adapters):
+        # One NeRF at a time, its samples plain tensors: with a cache, a NeRF may be dropped once it has answered.
+        for i in range(self.num_nerfs):
             rows, rays = None, ray_bundle
             if used is not None:
                 if not bool(used[i].any()):
@@ -312,6 +342,7 @@ class NerfuserModel(Model):
                 if not bool(used[i].all()):
                     rows = used[i].nonzero()[:, 0]
                     rays = ray_bundle[rows]
+            adapter = self.adapter(i)  # loaded only here, for a NeRF some ray uses
             if self._identity[i]:  # exactly the rays the NeRF would see itself, no float round trip
                 bundle = RayBundle(
                     origins=rays.origins,
