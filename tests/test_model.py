@@ -16,6 +16,7 @@ import pytest
 import torch
 import yaml
 from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.appearance import IDENTITY, apply_colour_map
@@ -24,7 +25,7 @@ from nerfuser_ns.bench.training import train
 from nerfuser_ns.blending import BLEND_METHODS, render_samples
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.coverage import CameraIndex
-from nerfuser_ns.model import NerfuserModel, fuse_models, map_rays
+from nerfuser_ns.model import NerfuserModel, NerfuserModelConfig, fuse_models, map_rays
 from nerfuser_ns.registration import NerfEntry, write_minimal_registration
 from nerfuser_ns.spec import write_fusion_spec
 
@@ -332,6 +333,70 @@ def test_each_ray_uses_only_its_own_nerfs_in_any_batch(pair, monkeypatch):
     close(mixed["rgb_idw_sample"][at_c], alone_c, 1e-5)
     close(mixed["rgb_nerf"][at_c], alone_c, 1e-5)
     close(mixed["share_2"][at_c], torch.ones_like(mixed["share_2"][at_c]), 1e-6)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Bounded memory (ours): sub-models loaded on first use, at most max_resident_nerfs resident
+
+
+@pytest.fixture(scope="module")
+def three_runs_spec(trained, tmp_path_factory) -> Path:
+    """A fusion spec of three copies of the run: A (identity), B (moved 0.25) and C (moved 1.5, away from C2W)."""
+    root = tmp_path_factory.mktemp("lru")
+    configs = [trained.config_path]
+    for name in ("b", "c"):
+        run_dir = root / "runs" / name / "nerfacto-cpu" / "run"
+        shutil.copytree(trained.config_path.parent, run_dir)
+        configs.append(run_dir / "config.yml")
+    transforms = [np.eye(4)] + [sim3.make_sim3(np.eye(3), np.array([x, 0.0, 0.0]), 1.0) for x in (0.25, 1.5)]
+    entries = [NerfEntry(n, c, t) for n, c, t in zip("abc", configs, transforms, strict=True)]
+    write_minimal_registration(entries, root / "registration.json")
+    return write_fusion_spec(root / "fusion.json", configs, registration="registration.json", names=list("abc"))
+
+
+def _from_spec(spec: Path, **overrides) -> NerfuserModel:  # noqa: ANN003
+    config = NerfuserModelConfig(fusion_spec=spec, tau=1.8, **overrides)
+    model = config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=1, metadata={})
+    return model.eval()
+
+
+def test_one_resident_nerf_renders_what_all_resident_render(three_runs_spec):
+    """max_resident_nerfs=1 over three NeRFs: the same pixels as with all three resident, never more than one in
+    memory (A and B are both needed by C2W's rays: the batch takes them one at a time), and a NeRF is loaded only
+    for rays that pass its distance test (C2W never loads C; a camera by C loads C alone)."""
+    c2w_c = C2W.copy()
+    c2w_c[:3, 3] += [1.5, 0.0, 0.0]  # sees C as C2W sees A; A and B fail the distance test there
+    full = _from_spec(three_runs_spec)
+    assert full.nerf_cache is None and len(full.nerfs) == 3  # the default: all loaded at setup, as before
+    want = [render(full, c, OUTPUTS + ("share_0", "share_1", "share_2")) for c in (C2W, c2w_c)]
+
+    lazy = _from_spec(three_runs_spec, max_resident_nerfs=1)
+    cache = lazy.nerf_cache
+    assert lazy.nerfs is None and cache.resident() == [] and cache.loads == 0  # nothing loaded at setup
+    loaded: list[int] = []
+    most: list[int] = []
+    load = cache.loader
+
+    def spy(i: int):  # noqa: ANN202
+        loaded.append(i)
+        most.append(len(cache.resident()) + 1)  # resident once this one is in
+        return load(i)
+
+    cache.loader = spy
+    got = render(lazy, C2W, OUTPUTS + ("share_0", "share_1", "share_2"))
+    assert loaded == [0, 1] and max(most) == 1 and cache.resident() == [1]
+    got_c = render(lazy, c2w_c, OUTPUTS + ("share_0", "share_1", "share_2"))
+    assert loaded == [0, 1, 2] and max(most) == 1 and cache.resident() == [2]
+    assert (cache.loads, cache.evictions) == (3, 2)
+    again = render(lazy, C2W, OUTPUTS)  # A and B reloaded after their eviction: still the same pixels
+    assert loaded == [0, 1, 2, 0, 1] and (cache.loads, cache.evictions) == (5, 4)
+    for out, ref_out in ((got, want[0]), (got_c, want[1]), (again, want[0])):
+        for key in out:
+            close(out[key], ref_out[key], 1e-6)
+
+    fresh = _from_spec(three_runs_spec, max_resident_nerfs=1)
+    render(fresh, c2w_c)
+    assert fresh.nerf_cache.resident() == [2] and fresh.nerf_cache.loads == 1  # C's rays need C alone
 
 
 def test_model_is_frozen_and_its_checkpoint_holds_no_sub_model(trained):
