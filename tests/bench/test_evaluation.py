@@ -16,7 +16,7 @@ from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import evaluation, metrics, scenes
 from nerfuser_ns.bench.evaluation import EvaluationError, SceneRuns
 from nerfuser_ns.bench.training import train
-from nerfuser_ns.blending import BLEND_METHODS
+from nerfuser_ns.blending import BLEND_METHODS, PAPER_BLEND_METHODS
 from nerfuser_ns.cameras import camera_rays
 from nerfuser_ns.registration import NerfEntry, write_minimal_registration
 
@@ -108,7 +108,8 @@ def test_coverage_is_scored_with_the_runs_training_cameras(tiny, models):
         np.testing.assert_allclose(tc.intrinsics[:, 0], parsed.fx[:, 0].numpy(), rtol=1e-6)
     with pytest.raises(EvaluationError, match="needs the runs' training cameras"):
         evaluation.blend_metrics(models, T, cams, target, methods=("idw-sample", "coverage"))
-    scores = evaluation.blend_metrics(models, T, cams, target, methods=("idw-sample", "coverage"),
+    # no distance test: with tau 1.8 every test ray of this scene keeps one NeRF, and one NeRF blends alike
+    scores = evaluation.blend_metrics(models, T, cams, target, tau=None, methods=("idw-sample", "coverage"),
                                       nerf_cameras=nerf_cameras)  # fmt: skip
     assert set(scores) == {"idw-sample", "coverage"} and np.isfinite(scores["coverage"]["psnr"])
     # the cameras change the weights: not IDW-Sample's fallback
@@ -190,7 +191,7 @@ def test_bench_blending_script(tiny, tmp_path):
     # the sweep re-blends the same samples: at the scene's own gamma it scores what the quality pass scored
     sweep = scene["gamma_sweep"]
     assert set(sweep) == {"5.0", "1000.0"}
-    for m in BLEND_METHODS:
+    for m in PAPER_BLEND_METHODS:  # the sweep re-blends the paper's methods
         assert sweep["5.0"][m]["psnr"] == pytest.approx(q["ground-truth"][m]["psnr"], abs=1e-4)
     for m in ("nerf", "nearest"):  # no gamma in them
         assert sweep["1000.0"][m]["psnr"] == pytest.approx(sweep["5.0"][m]["psnr"], abs=1e-6)
