@@ -532,18 +532,28 @@ def page_text(browser: HeadlessChromium) -> str:
     return browser.call("Runtime.evaluate", expression="document.body.innerText")["result"].get("value", "")
 
 
-def test_ns_viewer_shows_a_fused_run(fused_run, browser):
-    """nerfstudio's own command on the fused run: the page shows the blended render and the NeRFuser panel."""
+def ns_viewer(config: Path) -> tuple[Command, int]:
+    """nerfstudio's own ``ns-viewer`` on a fused run, once it serves and has set up (our control included): the
+    banner comes just before the first render."""
     port = free_port()
     command = Command(
-        [str(BIN / "ns-viewer"), "--load-config", str(fused_run)]
+        [str(BIN / "ns-viewer"), "--load-config", str(config)]
         + ["--viewer.websocket-host", "127.0.0.1", "--viewer.websocket-port", str(port)],
-        fused_run.parent,
+        config.parent,
     )
     try:
-        # the banner comes once the viewer is set up (our control included), just before the first render
         wait_for(lambda: command.line("[") and _get(f"http://127.0.0.1:{port}/"), 180, "ns-viewer to serve", 0.5)
         wait_for(lambda: any("disabled local writer" in line for line in command.lines), 120, "ns-viewer setup", 0.5)
+    except BaseException:
+        command.stop()
+        raise
+    return command, port
+
+
+def test_ns_viewer_shows_a_fused_run(fused_run, browser):
+    """nerfstudio's own command on the fused run: the page shows the blended render and the NeRFuser panel."""
+    command, port = ns_viewer(fused_run)
+    try:
         browser.call("Page.navigate", url=f"http://127.0.0.1:{port}/")
         text = wait_for(
             lambda: (t := page_text(browser)) and "Resolution:" in t and "0x0px" not in t and t, 60, "a first frame"
@@ -606,18 +616,8 @@ def test_ns_viewer_opens_a_fused_run_without_test_images(fusion_spec):
     """A run fused from the user's own runs alone (no test_data): ns-viewer reads every attribute of the pipeline,
     the eval loader included, and must still serve the scene."""
     spec = write_fusion_spec(fusion_spec.parent / "fusion_no_test.json", RUNS, registration="registration.json")
-    config = fuse(spec, "fused_no_test")
-    port = free_port()
-    command = Command(
-        [str(BIN / "ns-viewer"), "--load-config", str(config)]
-        + ["--viewer.websocket-host", "127.0.0.1", "--viewer.websocket-port", str(port)],
-        config.parent,
-    )
-    try:
-        wait_for(lambda: command.line("[") and _get(f"http://127.0.0.1:{port}/"), 180, "ns-viewer to serve", 0.5)
-        wait_for(lambda: any("disabled local writer" in line for line in command.lines), 120, "ns-viewer setup", 0.5)
-    finally:
-        out = command.stop()
+    command, port = ns_viewer(fuse(spec, "fused_no_test"))
+    out = command.stop()
     assert command.proc.returncode in (0, -signal.SIGTERM), out[-3000:]
     assert "Traceback" not in out and "no test images" not in out, out[-3000:]
     assert port_closed(port)
