@@ -54,7 +54,17 @@ def refine_transforms(
         T0, cam_c2w, cam_nerf, (intr.fx, intr.fy, intr.cx, intr.cy), points, obs["obs_cam"][keep],
         new_id[obs["obs_point"][keep]], obs["obs_xy"][keep], ref=ref, loss_scale_px=loss_scale_px,
     )
-    summary.update(_summary(res))
+    return _accept(res, T0, summary)
+
+
+def _accept(res: bundle.BundleResult, T0: np.ndarray, summary: dict) -> tuple[np.ndarray, dict]:
+    """The refined transforms with the solver's summary, or ``T0`` (``used`` False) when the refinement did not lower
+    the reprojection error."""
+    summary.update({
+        "rms_px_before": json_float(res.rms_px_before), "rms_px_after": json_float(res.rms_px_after),
+        "median_px_after": json_float(res.median_px_after), "inlier_fraction": json_float(res.inlier_fraction),
+        "iterations": res.iterations, "solver": res.message,
+    })  # fmt: skip
     if not (np.isfinite(res.T_to_ref).all() and res.rms_px_after <= res.rms_px_before):
         return T0, {**summary, "reason": "the refinement did not lower the reprojection error"}
     change = sim3.sim3_errors(res.T_to_ref, T0)
@@ -62,12 +72,6 @@ def refine_transforms(
     summary["change"] = [{"r_deg": json_float(change.r_err_deg[i]), "t": json_float(change.t_err[i]),
                           "s": json_float(change.s_err[i])} for i in range(len(T0))]  # fmt: skip
     return res.T_to_ref, summary
-
-
-def _summary(res: bundle.BundleResult) -> dict:
-    return {"rms_px_before": json_float(res.rms_px_before), "rms_px_after": json_float(res.rms_px_after),
-            "median_px_after": json_float(res.median_px_after), "inlier_fraction": json_float(res.inlier_fraction),
-            "iterations": res.iterations, "solver": res.message}  # fmt: skip
 
 
 def refine_on_matches(
@@ -110,11 +114,4 @@ def refine_on_matches(
     res = bundle.refine_sim3_bundle(T_to_ref, cam_c2w, cam_nerf, (intr.fx, intr.fy, intr.cx, intr.cy), points,
                                     obs_cam, obs_point, obs_xy, ref=ref, loss_scale_px=loss_scale_px,
                                     obs_distance=distance, distance_sigma=depth_sigma)  # fmt: skip
-    summary.update(_summary(res))
-    if not (np.isfinite(res.T_to_ref).all() and res.rms_px_after <= res.rms_px_before):
-        return T_to_ref, {**summary, "reason": "the refinement did not lower the reprojection error"}
-    change = sim3.sim3_errors(res.T_to_ref, T_to_ref)
-    summary["used"] = True
-    summary["change"] = [{"r_deg": json_float(change.r_err_deg[i]), "t": json_float(change.t_err[i]),
-                          "s": json_float(change.s_err[i])} for i in range(len(T_to_ref))]  # fmt: skip
-    return res.T_to_ref, summary
+    return _accept(res, T_to_ref, summary)
