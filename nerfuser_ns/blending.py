@@ -32,19 +32,27 @@ the authors' reference code does, instead of letting a far NeRF take the samples
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, get_args
+from typing import TYPE_CHECKING, Literal, get_args
 
 import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from nerfuser_ns.coverage import CameraIndex, CoverageParams, coverage_scores
-from nerfuser_ns.merging import MergedSamples, merge_samples, merged_sample_distances
+from nerfuser_ns.merging import (
+    MergedSamples,
+    expected_depth,
+    median_depth,
+    median_mids,
+    merge_samples,
+    merged_sample_distances,
+)
+
+if TYPE_CHECKING:  # the settings value imports this module's method names
+    from nerfuser_ns.blend_settings import BlendSettings
 
 BlendMethod = Literal["nerf", "nearest", "idw-2d", "idw-3d", "idw-sample", "coverage"]
 """Blending methods of the paper's Table 2 (the plain NeRF, nearest NeRF, IDW-2D, IDW-3D and IDW-Sample) and ours,
@@ -485,112 +493,7 @@ def render_samples(
 
 
 # ----------------------------------------------------------------------------------------------------------------------
-# Settings and the one entry the fused model calls
-
-ENV_METHOD = "NERFUSER_BLEND_METHOD"
-ENV_GAMMA = "NERFUSER_GAMMA"
-ENV_TAU = "NERFUSER_TAU"
-
-SHARE_PALETTE = torch.tensor(
-    [
-        [0.122, 0.467, 0.706],
-        [1.000, 0.498, 0.055],
-        [0.173, 0.627, 0.173],
-        [0.839, 0.153, 0.157],
-        [0.580, 0.404, 0.741],
-        [0.549, 0.337, 0.294],
-        [0.890, 0.467, 0.761],
-        [0.498, 0.498, 0.498],
-        [0.737, 0.741, 0.133],
-        [0.090, 0.745, 0.812],
-    ]
-)
-"""Colours of the colour-coded share map (tab10): NeRF i gets ``SHARE_PALETTE[i % 10]``."""
-
-
-@dataclass(frozen=True)
-class BlendSettings:
-    """The render-time blend settings: one frozen value, checked when it is made (:meth:`checked`).
-
-    Every writer (the model config, the ``NERFUSER_*`` environment, the viewer, sweeps) builds a new value through
-    :meth:`from_config` or :meth:`replace`; nothing validates per forward pass.
-    """
-
-    method: str = "idw-sample"
-    gamma: float = PAPER_OBJECT_CENTRIC[0]
-    tau: float | None = PAPER_OBJECT_CENTRIC[1]
-    """None (or 0 where given): the distance test is off."""
-    reference_nerf: int = 0
-    coverage: CoverageParams = CoverageParams()
-    """Constants of the ``coverage`` method."""
-
-    @classmethod
-    def from_config(cls, config: Any, environ: Any = None) -> BlendSettings:
-        """A model config's ``blend_method`` / ``gamma`` / ``tau`` / ``reference_nerf``, overridden by
-        ``NERFUSER_BLEND_METHOD`` / ``_GAMMA`` / ``_TAU``; ValueError (one line, naming the option or variable) when a
-        value is unusable."""
-        environ = os.environ if environ is None else environ
-
-        def number(name: str, value: Any) -> float:
-            try:
-                return float(value)
-            except (TypeError, ValueError):
-                raise ValueError(f"nerfuser: {name} must be a number, got {value!r}") from None
-
-        method = environ.get(ENV_METHOD, config.blend_method)
-        gamma = number(ENV_GAMMA, environ[ENV_GAMMA]) if ENV_GAMMA in environ else number("gamma", config.gamma)
-        tau: Any = config.tau
-        if ENV_TAU in environ:
-            raw = environ[ENV_TAU].strip()
-            tau = None if raw.lower() in ("", "none", "off") else number(ENV_TAU, raw)
-        elif tau is not None:
-            tau = number("tau", tau)
-        coverage = getattr(config, "coverage", None) or CoverageParams()
-        return cls(str(method), gamma, tau, int(config.reference_nerf), coverage).checked()
-
-    def checked(self, num_nerfs: int | None = None) -> BlendSettings:
-        """This value with ``tau = 0`` read as off, or ValueError (one line) naming what is wrong."""
-        if self.method not in BLEND_METHODS:
-            raise ValueError(f"nerfuser: unknown blend method {self.method!r}; choose one of {BLEND_METHODS}")
-        if not (self.gamma >= 0):  # also rejects NaN
-            raise ValueError(f"nerfuser: gamma must be >= 0, got {self.gamma}")
-        if self.tau is not None and self.tau != 0 and not (self.tau >= 1):
-            raise ValueError(f"nerfuser: tau must be >= 1 (a distance ratio), or 0 / None to turn the test off; "
-                             f"got {self.tau}")  # fmt: skip
-        if num_nerfs is not None and not -num_nerfs <= self.reference_nerf < num_nerfs:
-            raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {num_nerfs} NeRFs")
-        self.coverage.checked()
-        return self if self.tau != 0 else dataclasses.replace(self, tau=None)
-
-    def replace(self, num_nerfs: int | None = None, **changes: Any) -> BlendSettings:
-        """A checked copy with ``changes`` (the only way settings change after the model is built)."""
-        return dataclasses.replace(self, **changes).checked(num_nerfs)
-
-
-def median_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
-    """nerfstudio's "median" depth: the midpoint of the sample where the accumulated weight reaches 0.5."""
-    cum = torch.cumsum(weights, dim=-1)
-    split = torch.full_like(cum[..., :1], 0.5)
-    idx = torch.searchsorted(cum.contiguous(), split, side="left").clamp(0, mids.shape[-1] - 1)
-    return torch.gather(mids, -1, idx)[..., 0]
-
-
-def expected_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
-    """nerfstudio's "expected" depth, clipped per ray to the sample range."""
-    depth = (weights * mids).sum(-1) / (weights.sum(-1) + 1e-10)
-    return torch.clip(depth, mids.amin(-1), mids.amax(-1))
-
-
-def median_mids(merged: MergedSamples) -> Float[Tensor, "*bs m"]:
-    """Merged midpoints for the median depth, zero-length intervals taking the previous real interval's midpoint.
-
-    Merging duplicates boundaries (e.g. identical NeRFs, padding); where the accumulated weight never reaches 0.5
-    the median falls on the last interval, which must be the last real one, as for a single NeRF.
-    """
-    pos = merged.deltas > 0
-    idx = torch.arange(pos.shape[-1], device=pos.device).expand_as(pos)
-    last_real = torch.where(pos, idx, 0).cummax(dim=-1).values
-    return merged.midpoints.gather(-1, last_real)
+# The one entry the fused model calls
 
 
 def blend(

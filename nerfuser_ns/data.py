@@ -24,7 +24,7 @@ from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIn
 from nerfstudio.engine.trainer import TrainerConfig
 from torch.nn import Parameter
 
-from nerfuser_ns.blending import BlendSettings
+from nerfuser_ns.blend_settings import BlendSettings
 from nerfuser_ns.model import NerfuserModelConfig
 from nerfuser_ns.registration import RegistrationConfig
 from nerfuser_ns.runs import RunLoadError, applied_transform, stored_to_nerf, training_cameras

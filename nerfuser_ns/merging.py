@@ -154,3 +154,29 @@ def merged_sample_distances(
     ts = torch.cat([merged.midpoints, merged.ends[..., -1:]], dim=-1)
     d = sample_distances(ray_origins, ray_directions, ts, nerf_origins)
     return d[..., :-1], d[..., -1]
+
+
+def median_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
+    """nerfstudio's "median" depth: the midpoint of the sample where the accumulated weight reaches 0.5."""
+    cum = torch.cumsum(weights, dim=-1)
+    split = torch.full_like(cum[..., :1], 0.5)
+    idx = torch.searchsorted(cum.contiguous(), split, side="left").clamp(0, mids.shape[-1] - 1)
+    return torch.gather(mids, -1, idx)[..., 0]
+
+
+def expected_depth(weights: Float[Tensor, "*bs k"], mids: Float[Tensor, "*bs k"]) -> Float[Tensor, " *bs"]:
+    """nerfstudio's "expected" depth, clipped per ray to the sample range."""
+    depth = (weights * mids).sum(-1) / (weights.sum(-1) + 1e-10)
+    return torch.clip(depth, mids.amin(-1), mids.amax(-1))
+
+
+def median_mids(merged: MergedSamples) -> Float[Tensor, "*bs m"]:
+    """Merged midpoints for the median depth, zero-length intervals taking the previous real interval's midpoint.
+
+    Merging duplicates boundaries (e.g. identical NeRFs, padding); where the accumulated weight never reaches 0.5
+    the median falls on the last interval, which must be the last real one, as for a single NeRF.
+    """
+    pos = merged.deltas > 0
+    idx = torch.arange(pos.shape[-1], device=pos.device).expand_as(pos)
+    last_real = torch.where(pos, idx, 0).cummax(dim=-1).values
+    return merged.midpoints.gather(-1, last_real)

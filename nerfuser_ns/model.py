@@ -61,7 +61,8 @@ from nerfuser_ns.adapters import (
     make_adapter,
 )
 from nerfuser_ns.appearance import IDENTITY, apply_colour_map
-from nerfuser_ns.blending import BLEND_METHODS, PAPER_OBJECT_CENTRIC, SHARE_PALETTE, BlendMethod, BlendSettings
+from nerfuser_ns.blend_settings import SHARE_PALETTE, BlendSettings
+from nerfuser_ns.blending import BLEND_METHODS, PAPER_OBJECT_CENTRIC, BlendMethod
 from nerfuser_ns.coverage import CameraIndex, CoverageParams
 from nerfuser_ns.registration.record import TrainingCameras
 from nerfuser_ns.runs import load_run

@@ -40,7 +40,7 @@ from nerfstudio.viewer.render_state_machine import RenderAction
 from nerfstudio.viewer.viewer_elements import ViewerControl
 
 from nerfuser_ns import runs
-from nerfuser_ns.blending import SHARE_PALETTE
+from nerfuser_ns.blend_settings import SHARE_PALETTE
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.record import read_render_poses, render_folders
 from nerfuser_ns.sim3 import transform_poses
@@ -63,7 +63,7 @@ meant to take at the renderer's measured speed; it is then half of "Max res" tal
 longer. nerfstudio sizes them for 30 fps, from a guess of 100k rays/s until it has timed a frame: a 40 px tall first
 frame, then ~30 px ones on a CPU."""
 
-# Names of the share colours (nerfuser_ns.blending.SHARE_PALETTE, tab10), for the legend.
+# Names of the share colours (nerfuser_ns.blend_settings.SHARE_PALETTE, tab10), for the legend.
 _COLOUR_NAMES = ["blue", "orange", "green", "red", "purple", "brown", "pink", "grey", "olive", "cyan"]
 _TEST_COLOUR = (255, 211, 105)  # nerfstudio's brand colour: the test cameras
 _DROPPED_COLOUR = (140, 140, 140)  # registration views left out of the SfM (too little opacity)

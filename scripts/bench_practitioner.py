@@ -74,7 +74,7 @@ STOCK_OPTIONS = ["--vis", "tensorboard"]
 """Stock nerfacto on the GPU: the viewer (ns-train's default) would keep the process alive after training."""
 
 BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
-                 ("idw_sample", "IDW-Sample")]  # fmt: skip
+                 ("idw_sample", "IDW-Sample"), ("coverage", "Coverage (ours)")]  # fmt: skip
 
 
 @dataclass

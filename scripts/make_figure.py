@@ -19,7 +19,7 @@ import numpy as np  # noqa: E402
 import tyro  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from nerfuser_ns.blending import SHARE_PALETTE  # noqa: E402
+from nerfuser_ns.blend_settings import SHARE_PALETTE  # noqa: E402
 from nerfuser_ns.files import atomic_path  # noqa: E402
 from nerfuser_ns.spec import read_registered_nerfs  # noqa: E402
 from nerfuser_ns.viewer import read_render_folder, short_name  # noqa: E402

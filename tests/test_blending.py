@@ -6,10 +6,10 @@ import time
 import pytest
 import torch
 
+from nerfuser_ns.blend_settings import BlendSettings
 from nerfuser_ns.blending import (
     BLEND_METHODS,
     PAPER_BLEND_METHODS,
-    BlendSettings,
     apply_distance_test,
     blend,
     camera_to_origin_distances,
@@ -17,7 +17,6 @@ from nerfuser_ns.blending import (
     distance_mask,
     distance_ratio,
     distance_test,
-    expected_depth,
     idw_2d,
     idw_3d,
     idw_3d_weights,
@@ -29,7 +28,13 @@ from nerfuser_ns.blending import (
     render_samples,
 )
 from nerfuser_ns.coverage import CameraIndex, CoverageParams, coverage_scores
-from nerfuser_ns.merging import MergedSamples, merge_samples, merged_sample_distances, sample_distances
+from nerfuser_ns.merging import (
+    MergedSamples,
+    expected_depth,
+    merge_samples,
+    merged_sample_distances,
+    sample_distances,
+)
 
 GAMMAS = [0.01, 1.0, 100.0, 1e4]
 
@@ -601,15 +606,3 @@ def _look_at(centre, target):
     right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=back.dtype), back),
                                           dim=0)  # fmt: skip
     return torch.stack([right, torch.linalg.cross(back, right), back, centre], dim=-1)
-
-
-def test_blend_settings_are_checked_once_and_tau_zero_is_off():
-    s = BlendSettings(method="idw-2d", gamma=2.0, tau=0.0).checked()
-    assert s.tau is None and s.method == "idw-2d"
-    assert s.replace(gamma=3.0).gamma == 3.0 and s.gamma == 2.0  # frozen: a new value
-    for bad, match in (({"gamma": -1.0}, "gamma"), ({"gamma": float("nan")}, "gamma"), ({"tau": 0.5}, "tau"),
-                       ({"method": "idw-4d"}, "unknown blend method")):  # fmt: skip
-        with pytest.raises(ValueError, match=match):
-            s.replace(**bad)
-    with pytest.raises(ValueError, match="reference_nerf 3 out of range"):
-        s.replace(num_nerfs=2, reference_nerf=3)

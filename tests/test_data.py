@@ -427,16 +427,6 @@ def test_ns_train_with_bad_blend_settings_writes_no_run(tmp_path, two_runs, monk
     assert not (tmp_path / "out").exists()
 
 
-def test_tau_zero_turns_the_distance_test_off_everywhere(monkeypatch):
-    from nerfuser_ns.blending import BlendSettings
-    from nerfuser_ns.model import NerfuserModelConfig
-
-    assert BlendSettings.from_config(NerfuserModelConfig(tau=0.0), environ={}).tau is None
-    assert BlendSettings.from_config(NerfuserModelConfig(), environ={"NERFUSER_TAU": "0"}).tau is None
-    assert BlendSettings.from_config(NerfuserModelConfig(), environ={"NERFUSER_TAU": "none"}).tau is None
-    assert BlendSettings.from_config(NerfuserModelConfig(tau=1.2), environ={}).tau == 1.2
-
-
 def test_a_failed_automatic_registration_leaves_no_run(tmp_path, two_runs, monkeypatch):
     a, b = two_runs
 

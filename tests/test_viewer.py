@@ -32,7 +32,7 @@ from nerfstudio.viewer import render_state_machine
 from PIL import Image
 
 from nerfuser_ns import registration, sim3
-from nerfuser_ns.blending import SHARE_PALETTE as _PALETTE
+from nerfuser_ns.blend_settings import SHARE_PALETTE as _PALETTE
 from nerfuser_ns.data import PlaceholderImageDataset
 from nerfuser_ns.renderers import RenderBatch
 from nerfuser_ns.scripts.view import check_bind, load_fused_pipeline, start_viewer
