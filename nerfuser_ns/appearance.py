@@ -1,14 +1,21 @@
-"""Appearance matching (ours, beyond the paper): one affine colour map per NeRF, to the reference NeRF's colours.
+"""Appearance matching (ours, beyond the paper): one colour map per NeRF, to the reference NeRF's colours.
 
 Captures filmed at different times differ in exposure and white balance; blending two NeRFs of them shows seams.
-Per NeRF ``i`` a map ``M_i = [A_i | b_i]`` (3x4) acts in LINEAR RGB:
+Both are per-channel gains on LINEAR RGB (the camera's exposure times its white-balance gains). Per NeRF ``i`` a map
+``M_i = [A_i | b_i]`` (3x4, the file's general affine form) acts in linear RGB:
 
     c_ref_lin ≈ A_i c_i_lin + b_i,    c_lin = srgb_to_linear(c)   (nerfstudio NeRFs output sRGB-encoded colours)
 
+and the estimate is the gain model, ``A_i = diag(g_i)``, ``b_i = 0``.
+
 Estimation (registration, :mod:`nerfuser_ns.registration.self_check`): the cross-render self-check renders NeRF ``j``
 at NeRF ``i``'s poses mapped through the solution; where both renders are opaque (accumulation >= 0.95) and no
-channel is clipped, the pixel pairs give ``M_j->i`` by least squares (both directions of a pair pooled). The pairs'
-maps are chained along the self-check's spanning tree to the reference (:func:`chain_to_reference`).
+channel is clipped, the pixel pairs give ``g_j->i`` per channel as the ratio of the two renders' summed linear
+colours (both directions of a pair pooled). Ratios of sums, not a per-pixel regression: the two renders of a pixel
+never show exactly the same point (registration error, each NeRF's blur), and a least-squares fit of one on the other
+shrinks its slopes towards 0 by that misalignment (errors in variables; on two stock nerfacto runs of one object with
+no colour difference it gave gains of 0.52-0.80). Sums over thousands of pixels average the misalignment out. The
+pairs' maps are chained along the self-check's spanning tree to the reference (:func:`chain_to_reference`).
 
 Application (:class:`nerfuser_ns.model.NerfuserModel`): every sample colour and background colour of NeRF ``i`` becomes
 ``linear_to_srgb(clip(A_i srgb_to_linear(c) + b_i, 0, 1))`` before blending; the identity map leaves colours
@@ -34,6 +41,8 @@ CLIPPED = 254.5 / 255.0
 """sRGB values at or above this (in either render) are saturated: their pixel is left out of the fit."""
 MIN_PIXELS = 64
 """Fewer pixel pairs than this: no map (None)."""
+MAX_GAIN = 16.0
+"""Gains beyond ``[1 / MAX_GAIN, MAX_GAIN]`` (4 stops) are no exposure difference but a failed match: no map."""
 
 
 def srgb_to_linear(x: Tensor) -> Tensor:
@@ -56,20 +65,22 @@ def apply_colour_map(rgb: Float[Tensor, "*bs 3"], colour_map: Float[Tensor, "3 4
 def fit_colour_map(
     source: Float[np.ndarray, "n 3"], target: Float[np.ndarray, "n 3"], min_pixels: int = MIN_PIXELS
 ) -> Float[np.ndarray, "3 4"] | None:
-    """The affine map (in linear RGB) taking ``source`` sRGB colours to ``target`` ones, by least squares; pixels
-    saturated in either are left out. None when fewer than ``min_pixels`` remain or the fit is degenerate."""
+    """The per-channel linear-RGB gains taking ``source`` sRGB colours to ``target`` ones, as a 3x4 map
+    ``[diag(g) | 0]``: ``g_c = sum(target_lin_c) / sum(source_lin_c)`` over the pixels saturated in neither. None when
+    fewer than ``min_pixels`` remain or a gain is not plausible (:data:`MAX_GAIN`)."""
     src = np.asarray(source, dtype=np.float64).reshape(-1, 3)
     dst = np.asarray(target, dtype=np.float64).reshape(-1, 3)
     ok = (src < CLIPPED).all(-1) & (dst < CLIPPED).all(-1) & np.isfinite(src).all(-1) & np.isfinite(dst).all(-1)
     if int(ok.sum()) < min_pixels:
         return None
-    s_lin = srgb_to_linear(torch.from_numpy(src[ok])).numpy()
-    d_lin = srgb_to_linear(torch.from_numpy(dst[ok])).numpy()
-    design = np.hstack([s_lin, np.ones((len(s_lin), 1))])
-    solution, _, rank, _ = np.linalg.lstsq(design, d_lin, rcond=None)
-    if rank < 4 or not np.isfinite(solution).all():
+    s_sum = srgb_to_linear(torch.from_numpy(src[ok])).numpy().sum(0)
+    d_sum = srgb_to_linear(torch.from_numpy(dst[ok])).numpy().sum(0)
+    if not (s_sum > 0).all():
         return None
-    return solution.T.copy()  # [3, 4]: rows are output channels
+    gains = d_sum / s_sum
+    if not (np.isfinite(gains).all() and (gains >= 1 / MAX_GAIN).all() and (gains <= MAX_GAIN).all()):
+        return None
+    return np.hstack([np.diag(gains), np.zeros((3, 1))])
 
 
 def compose(outer: Float[np.ndarray, "3 4"], inner: Float[np.ndarray, "3 4"]) -> Float[np.ndarray, "3 4"]:

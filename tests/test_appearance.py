@@ -21,20 +21,30 @@ from nerfuser_ns.appearance import (
 from nerfuser_ns.bench import scenes
 
 KNOWN = np.array([[0.8, 0.05, 0.0, 0.01], [0.02, 1.1, 0.03, -0.01], [0.0, 0.1, 0.7, 0.02]])
+GAINS = np.array([0.8, 1.3, 0.6])  # an exposure and white-balance difference: per-channel gains on linear RGB
 
 
-def test_the_estimate_recovers_a_known_affine_map():
+def test_the_estimate_recovers_known_gains():
     rng = np.random.default_rng(0)
-    src = rng.uniform(0.25, 0.85, size=(2000, 3))  # no clipping under KNOWN
-    dst = apply_colour_map(torch.from_numpy(src), torch.from_numpy(KNOWN)).numpy()
-    np.testing.assert_allclose(fit_colour_map(src, dst), KNOWN, atol=1e-9)
+    src = rng.uniform(0.05, 0.95, size=(2000, 3))
+    gain_map = np.hstack([np.diag(GAINS), np.zeros((3, 1))])
+    dst = apply_colour_map(torch.from_numpy(src), torch.from_numpy(gain_map)).numpy()
+    np.testing.assert_allclose(fit_colour_map(src, dst), gain_map, atol=1e-9)  # green's clipped pixels left out
     # Saturated pixels (a clipped sky in one render) are left out, not fitted.
     src[:300] = 1.0
     dst[300:600] = 1.0
-    np.testing.assert_allclose(fit_colour_map(src, dst), KNOWN, atol=1e-9)
+    np.testing.assert_allclose(fit_colour_map(src, dst), gain_map, atol=1e-9)
     assert fit_colour_map(src[:40], dst[:40]) is None  # too few pixels
-    grey = np.repeat(rng.uniform(0.1, 0.9, size=(500, 1)), 3, axis=1)
-    assert fit_colour_map(grey, grey) is None  # grey only: the channels cannot be told apart
+    assert fit_colour_map(src, np.full_like(dst, 0.001)) is None  # a 'gain' of 1/1000: no match, not an exposure
+
+
+def test_misaligned_renders_of_the_same_colours_give_the_identity():
+    # Two renders of one textured surface a few pixels apart (registration error, each NeRF's blur), no colour
+    # difference: a per-pixel regression of one on the other would shrink the map towards 0; the gains stay 1.
+    rng = np.random.default_rng(1)
+    texture = rng.uniform(0.05, 0.95, size=(96, 104, 3))
+    src, dst = texture[:, :96], texture[:, 6:102]
+    np.testing.assert_allclose(fit_colour_map(src, dst), IDENTITY, atol=0.03)
 
 
 def test_transfer_functions_and_map_algebra():
