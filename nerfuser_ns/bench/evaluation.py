@@ -305,16 +305,18 @@ def measure_render_cost(
     seed: int = 0,
     gamma: float = 5.0,
     tau: float | None = PAPER_OBJECT_CENTRIC[1],
+    nerf_cameras: Sequence[TrainingCameras] | None = None,
 ) -> RenderCost:
     """Times one chunk of ``num_rays`` random test rays through the fused model (``method``, no extra outputs) and
     through each sub-model's own forward pass (collider, sampler, field, renderers) on the same rays mapped into its
     frame, and through each sub-model on just the rays the fused model queries it on. Each repeat runs every pass
     once, in a shuffled order (seeded); the ratios are medians of the per-repeat ratios. The first (warm-up,
-    compilation) pass is not counted. Memory is measured in one more pass per full-chunk path, after the timing."""
+    compilation) pass is not counted. Memory is measured in one more pass per full-chunk path, after the timing.
+    ``nerf_cameras``: the runs' training cameras (``coverage`` needs them; without them it is IDW-Sample)."""
     # The allocator setting the memory sampler needs, from the start: every pass, timed or sampled, and every call
     # in a process then runs under the same one (set lazily, the first call's memory hid in glibc's cache).
     _return_freed_memory_to_os()
-    model = fused(models, transforms, blend_method=method, gamma=gamma, tau=tau, share_outputs=False)
+    model = fused(models, transforms, nerf_cameras, blend_method=method, gamma=gamma, tau=tau, share_outputs=False)
     bundle = cameras.generate_rays(torch.arange(len(cameras))[:, None], keep_shape=False)
     gen = torch.Generator().manual_seed(seed)
     pick = torch.randperm(len(bundle), generator=gen)[:num_rays]
