@@ -797,3 +797,15 @@ def test_an_implausible_scale_is_warned_about(oc_renderers, oc_record, tmp_path,
     printed = " ".join(capsys.readouterr().out.split())
     assert rc == 0 and out.is_file()
     assert "implausible scale to the reference for capture_b" in printed and "same place" in printed
+
+
+@pytest.mark.parametrize("mode", ["sfm", "known-geometry", "graph"])
+def test_a_failed_self_check_names_the_likely_cause_of_its_mode(mode):
+    from nerfuser_ns.registration.self_check import CrossRenderCheck, failure_message
+
+    config = reg.RegistrationConfig(mode=mode)
+    good, bad = CrossRenderCheck(0, 1, 0.9, 0.8, 4), CrossRenderCheck(1, 2, 0.1, 0.2, 4)
+    assert failure_message([good], ["a", "b", "c"], config) is None
+    message = failure_message([good, bad], ["a", "b", "c"], config)
+    assert message.startswith("b and c: cross-render self-check failed (NCC 0.10 < ")  # the worse direction
+    assert ("SfM" in message) == (mode == "sfm") and ("pose graph" in message) == (mode == "graph")

@@ -67,7 +67,7 @@ class CrossRenderCheck:
     views: int
     """Views per direction."""
     colour_j_to_i: Float[np.ndarray, "3 4"] | None = None
-    """Affine colour map (linear RGB, :mod:`nerfuser_ns.appearance`) from j's renders to i's at the same pixels (None:
+    """Colour map (linear-RGB gains, :mod:`nerfuser_ns.appearance`) from j's renders to i's at the same pixels (None:
     too few opaque, unclipped pixels)."""
     colour_i_to_j: Float[np.ndarray, "3 4"] | None = None
     """The same from i's to j's."""
@@ -207,6 +207,14 @@ def passed(check: CrossRenderCheck, config: RegistrationConfig) -> bool:
     return bool(np.isfinite(check.score) and check.score >= config.ncc_threshold)
 
 
+LIKELY_CAUSE = {
+    "sfm": "the SfM probably merged unrelated content",
+    "known-geometry": "the matches probably linked unrelated content (repeated structure)",
+    "graph": "an edge of the pose graph probably linked unrelated content",
+}
+"""Per registration mode, the usual cause of a failed self-check (its error names it)."""
+
+
 def failure_message(checks: Sequence[CrossRenderCheck], names: Sequence[str], config: RegistrationConfig) -> str | None:
     """The one-line error for the first failed pair, or None when every checked pair passed."""
     for c in checks:
@@ -214,7 +222,6 @@ def failure_message(checks: Sequence[CrossRenderCheck], names: Sequence[str], co
             what = "saw nothing in common" if not np.isfinite(c.score) else f"NCC {c.score:.2f}"
             return (
                 f"{names[c.i]} and {names[c.j]}: cross-render self-check failed ({what} < {config.ncc_threshold}); "
-                f"the SfM probably merged unrelated content; {SUGGESTION} (or calibrate --ncc-threshold for blurry "
-                "renders)"
+                f"{LIKELY_CAUSE[config.mode]}; {SUGGESTION} (or calibrate --ncc-threshold for blurry renders)"
             )
     return None
