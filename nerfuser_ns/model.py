@@ -15,9 +15,10 @@ Per ray batch (rays in the COMMON frame):
    NeRF keeping its own background term (nerfacto "last_sample").
 
 Appearance matching (ours, :mod:`nerfuser_ns.appearance`): each NeRF's sample and background colours go through its
-colour map to the reference NeRF (from the registration file; identity when absent) before blending, unless
-``appearance_matching`` is off. Training cameras (for ``coverage``) come from the registration file too, mapped once
-into the common frame; rendering never reads a dataset. Without them ``coverage`` is IDW-Sample (one warning).
+colour map to the reference NeRF (from the registration file; identity when absent) before blending, when
+``appearance_matching`` is on (not the default). Training cameras (for ``coverage``) come from the registration file
+too, mapped once into the common frame; rendering never reads a dataset. Without them ``coverage`` is IDW-Sample (one
+warning).
 
 Frames: the sub-models never move; only rays do. ``pixel_area`` (the pixel footprint at unit ray distance, a solid
 angle) is invariant under a similarity: at distance ``t_nerf = t / s`` the footprint is ``pixel_area * t^2 / s^2``,
@@ -146,9 +147,10 @@ class NerfuserModelConfig(ModelConfig):
     """The NeRF rendered by the ``nerf`` method."""
     coverage: CoverageParams = field(default_factory=CoverageParams)
     """Constants of the ``coverage`` method: angular width, cameras per score, candidate cameras per ray."""
-    appearance_matching: bool = True
+    appearance_matching: bool = False
     """Map each NeRF's colours to the reference NeRF's with its colour map from the registration file (ours; the
-    identity where the file has none)."""
+    identity where the file has none). Off by default: on stock nerfacto runs of captures with no colour difference
+    the maps fitted on cross-renders moved the blends by +0.00 to -0.29 dB (reports/bench_blending_coverage.md)."""
     share_outputs: bool = True
     """Also output ``share_<i>`` (each NeRF's share of the pixel weight) and a colour-coded ``nerf_share`` map."""
     render_all_methods: bool = False
