@@ -131,6 +131,24 @@ def test_match_descriptors_keeps_mutual_unambiguous_matches():
     np.testing.assert_array_equal(perm[ib], ia)
 
 
+
+def test_match_descriptors_equals_brute_force_reference():
+    """The matcher against a plain numpy twin: full distance matrix, nearest two both ways, mutual, ratio test."""
+    rng = np.random.default_rng(3)
+    base = rng.normal(size=(300, 32))
+    da = base + 0.6 * rng.normal(size=base.shape)
+    db = base[rng.permutation(300)][:250] + 0.6 * rng.normal(size=(250, 32))
+    da /= np.linalg.norm(da, axis=1, keepdims=True)
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    d2 = ((da[:, None] - db[None]) ** 2).sum(-1)
+    ab, ba = np.argsort(d2, axis=1)[:, :2], np.argsort(d2, axis=0)[:2].T
+    ref = [(i, ab[i, 0]) for i in range(len(da))
+           if ba[ab[i, 0], 0] == i and d2[i, ab[i, 0]] <= 0.64 * d2[i, ab[i, 1]]
+           and d2[i, ab[i, 0]] <= 0.64 * d2[ba[ab[i, 0], 1], ab[i, 0]]]  # fmt: skip
+    ia, ib = kg.match_descriptors(da, db, ratio=0.8)
+    assert 20 < len(ref) < 250  # some, not all, pass: the test can tell the two apart
+    assert list(zip(ia.tolist(), ib.tolist(), strict=True)) == [(int(i), int(j)) for i, j in ref]
+
 def test_sim3_hypotheses_finds_both_links_of_a_repeated_structure():
     """Matches half explained by the true transform and half by its half-turn twin: two hypotheses, most inliers
     first, each explaining its own matches; a weaker third cluster below the fraction is left out."""
