@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.optimize._numdiff import approx_derivative
 
 from nerfuser_ns import bundle, sim3
 from nerfuser_ns.sampling import look_at
@@ -77,6 +78,38 @@ def test_noise_and_outliers_degrade_gracefully():
     assert (e.r_err_deg[1:] < e0.r_err_deg[1:] / 5).all()
     assert 0.9 < res.inlier_fraction < 0.99  # the 5% outliers are recognised as such
     assert res.median_px_after < 1.0
+
+
+@pytest.mark.parametrize("ref", [0, 1])
+@pytest.mark.parametrize("with_distance", [False, True])
+@pytest.mark.parametrize("rot_scale", [0.3, 1e-5])  # the closed form and the Taylor branch of the left Jacobian
+def test_analytic_jacobian_matches_finite_differences(ref, with_distance, rot_scale):
+    T_true, T0, cams, nerf, P0, oc, op, xy = synthetic(5, ref=ref)
+    sub = op < 40  # few points: the dense finite differences take one residual evaluation per column
+    P0, oc, op, xy = P0[:40], oc[sub], op[sub], xy[sub]
+    rng = np.random.default_rng(6)
+    kw = {"obs_distance": rng.uniform(1.0, 3.0, len(oc)), "distance_sigma": 0.02} if with_distance else {}
+    prob = bundle._bundle_problem(T0, cams, nerf, K, P0, oc, op, xy, ref=ref, loss_scale_px=1.5, **kw)
+    n_t = 7 * 2  # two moving NeRFs; the reference has no columns
+    assert len(prob.x0) == n_t + P0.size
+    # Away from zero increments: rotations, translations and log scales all nonzero, points moved.
+    x = prob.x0.copy()
+    inc = rng.normal(scale=0.2, size=(2, 7))
+    inc[:, :3] *= rot_scale / 0.2
+    x[:n_t] = inc.ravel()
+    x[n_t:] += rng.normal(scale=0.02, size=P0.size)
+    J = prob.jacobian(x)
+    Jn = approx_derivative(prob.residuals, x, method="3-point")
+    n_obs = len(oc)
+    assert J.shape == Jn.shape == ((3 if with_distance else 2) * n_obs, len(x))
+    np.testing.assert_allclose(J.toarray(), Jn, rtol=1e-6, atol=1e-6 * np.abs(Jn).max())
+    # Stored entries: 3 point columns per row, plus the NeRF's 7 for a camera of a moving NeRF.
+    moving = nerf[oc] != ref
+    per_obs = 3 + 7 * moving
+    row_nnz = np.diff(J.indptr)
+    np.testing.assert_array_equal(row_nnz[: 2 * n_obs], np.repeat(per_obs, 2))
+    if with_distance:
+        np.testing.assert_array_equal(row_nnz[2 * n_obs :], per_obs)
 
 
 def test_bad_inputs():
