@@ -455,8 +455,9 @@ def coverage_weights(
         keep = _pad_right(mask, scores.ndim).expand_as(scores)
     covered = ((scores > 0) & keep).any(dim=0, keepdim=True)
     pseudo = torch.where(scores > 0, 1.0 / scores.clamp(min=torch.finfo(scores.dtype).tiny), math.inf)
-    pseudo = torch.where(covered, pseudo, torch.ones_like(pseudo))  # uncovered: any finite value, replaced below
-    return torch.where(covered, idw_weights(pseudo, gamma, mask), idw_weights(distances, gamma, mask))
+    # idw_weights treats each element (column over the NeRF axis) on its own and ``covered`` is per element: one call
+    # on the pseudo-distances where covered and the distances elsewhere is both calls' selection, at half the cost.
+    return idw_weights(torch.where(covered, pseudo, distances), gamma, mask)
 
 
 def sample_coverage_scores(
@@ -466,18 +467,27 @@ def sample_coverage_scores(
     ray_directions: Float[Tensor, "num_rays 3"],
     pixel_widths: Float[Tensor, " num_rays"],
     params: CoverageParams,
+    needed: Bool[Tensor, "num_nerfs num_rays"] | None = None,
 ) -> Float[Tensor, "num_nerfs num_rays num_merged_bg"]:
     """Each NeRF's coverage score (cameras in the common frame) at every merged midpoint and at the ray's far end
     (the background pseudo-sample, as ``merged_sample_distances`` places it). Candidate cameras are chosen per ray at
-    the merged samples' expected termination point (all NeRFs' mass together)."""
+    the merged samples' expected termination point (all NeRFs' mass together). With ``needed``, only NeRF ``i``'s
+    rays ``needed[i]`` are scored, the others are 0 (a ray's scores do not depend on the other rays)."""
     ts = torch.cat([merged.midpoints, merged.ends[..., -1:]], dim=-1)
     mass = merged.weights.sum(dim=0)
     total = mass.sum(-1)
     mids = merged.midpoints
     middle = 0.5 * (merged.starts[..., 0] + merged.ends[..., -1])  # massless rays: the middle of the samples' range
     t_rep = torch.where(total > 0, (mass * mids).sum(-1) / torch.where(total > 0, total, 1.0), middle)
-    return torch.stack([coverage_scores(c, ray_origins, ray_directions, ts, pixel_widths, params, t_rep)
-                        for c in cameras])  # fmt: skip
+    if needed is None:
+        return torch.stack([coverage_scores(c, ray_origins, ray_directions, ts, pixel_widths, params, t_rep)
+                            for c in cameras])  # fmt: skip
+    scores = ts.new_zeros((len(cameras),) + ts.shape)
+    for i, c in enumerate(cameras):
+        rows = needed[i].nonzero()[:, 0]
+        scores[i, rows] = coverage_scores(c, ray_origins[rows], ray_directions[rows], ts[rows], pixel_widths[rows],
+                                          params, t_rep[rows])  # fmt: skip
+    return scores
 
 
 def render_samples(
@@ -556,8 +566,11 @@ def blend(
             if method == "coverage" and cameras is not None:
                 if pixel_widths is None:
                     raise ValueError("coverage blending needs the rays' pixel widths (sqrt of pixel_area)")
+                # Only where a NeRF takes part with another does its score matter: a ray's lone NeRF takes all the
+                # weight (coverage_weights' both branches), one left out by the distance test none, whatever the scores.
+                needed = mask & (mask.sum(0) > 1)
                 scores = sample_coverage_scores(merged, cameras, ray_origins, ray_directions, pixel_widths,
-                                                settings.coverage)  # fmt: skip
+                                                settings.coverage, needed)  # fmt: skip
                 slot_scores = scores.gather(0, order[..., None].expand(-1, -1, scores.shape[-1]))
                 slot_mask = None if tau is None else distance_mask(camera_d.gather(0, order), tau)
                 nerf_weights = coverage_weights(slot_scores, torch.cat([d, d_bg[..., None]], dim=-1), settings.gamma,

@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from nerfuser_ns import sim3
-from nerfuser_ns.blending import coverage_weights, idw_weights
+from nerfuser_ns.blending import coverage_weights, idw_weights, sample_coverage_scores
 from nerfuser_ns.coverage import CameraIndex, CoverageParams, camera_quality, candidate_cameras, coverage_scores
+from nerfuser_ns.merging import MergedSamples
 
 F = 50.0
 INTR = [F, F, 32.0, 24.0, 64.0, 48.0]  # fx fy cx cy width height
@@ -242,3 +243,104 @@ def test_scores_on_cuda_match_the_cpu():
                           t_rep=ts[:, 3].cuda())  # fmt: skip
     assert gpu.device.type == "cuda"
     torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-5, rtol=1e-4)
+
+
+def score_twin(c2w, intr, o, d, ts, pixel_width, params, t_rep=None) -> list[float]:
+    """A ray's scores written plainly: per camera, the loop twin's quality; the candidates (the best at ``t_rep``,
+    ties to the camera pointing most along the ray) and, per point, the mean of the ``k`` best among them."""
+    unit = np.asarray(d, float) / np.linalg.norm(d)
+    cams = range(len(c2w))
+    if t_rep is not None and len(c2w) > params.candidates:
+        key = [quality_twin(c2w[j], intr[j], o, unit, t_rep, pixel_width, params.sigma_deg)
+               + 1e-6 * (1.0 + unit @ -c2w[j][:3, 2]) for j in cams]  # fmt: skip
+        cams = sorted(cams, key=lambda j: -key[j])[: params.candidates]
+    scores = []
+    for t in ts:
+        q = sorted((quality_twin(c2w[j], intr[j], o, unit, t, pixel_width, params.sigma_deg) for j in cams),
+                   reverse=True)  # fmt: skip
+        scores.append(sum(q[: params.k]) / params.k)
+    return scores
+
+
+def test_scores_match_the_twin_with_cameras_behind_and_beside_the_points():
+    """The fast path (per ray and camera constants, visibility as an interval of t, one camera at a time, a running
+    top k) against the plain loop: cameras in front of the points, behind them, looking past them, a narrow one, one
+    on a ray (the points on either side of its centre), non-unit directions, candidates fewer than the cameras."""
+    rng = np.random.default_rng(12)
+    c2w = [look_at(rng.normal(size=3) * 2.0, rng.normal(size=3) * 0.3) for _ in range(7)]  # in front
+    c2w += [look_at(c, 2.0 * c) for c in rng.normal(size=(3, 3))]  # looking away: the points are behind them
+    c2w += [look_at(c, c + np.cross(c, (0.0, 0.0, 1.0))) for c in rng.normal(size=(2, 3)) * 2.0]  # looking past them
+    c2w += [look_at((0.0, -3.0, 0.5), (0.1, 0.0, 0.0))]  # narrow, below: most points outside its image
+    o, d, ts, pw = rays(9, seed=13)
+    o[0], d[0] = torch.tensor([0.0, 0.0, -2.0], dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    c2w += [look_at((0.0, 0.0, -1.0), (0.0, 0.0, 5.0), up=(0.0, 1.0, 0.0))]  # on ray 0, looking along it
+    ts[0] = torch.linspace(0.3, 3.0, ts.shape[1], dtype=torch.float64)  # behind the last camera, then in front
+    c2w = np.stack(c2w)
+    intr = np.tile(INTR, (len(c2w), 1)) * rng.uniform(0.7, 1.3, size=(len(c2w), 1))
+    intr[-2, :2] *= 6.0  # the narrow one
+    index = index_of(c2w, intr)
+    scale = torch.rand(9, 1, generator=torch.Generator().manual_seed(14), dtype=torch.float64) + 0.5
+    d_scaled, ts_scaled = d * scale, ts / scale  # the same points along non-unit directions
+    params = CoverageParams(sigma_deg=30.0, k=3, candidates=6)
+    t_rep = ts[:, 2]
+    points = [[o[r].numpy() + float(t) * d[r].numpy() for t in ts[r]] for r in range(9)]
+    twin_q = torch.tensor([[[quality_twin(c2w[j], intr[j], o[r], d[r], float(ts[r, s]), float(pw[r]), 30.0)
+                             for j in range(len(c2w))] for s in range(ts.shape[1])] for r in range(9)])  # fmt: skip
+    # z = -p_z with p = R^T (x - c): how many (point, camera) pairs have the point behind the camera
+    behind = sum(float((c2w[j][:3, :3].T @ (x - c2w[j][:3, 3]))[2]) > 0 for row in points for x in row
+                 for j in range(len(c2w)))  # fmt: skip
+    assert behind >= 40 and (twin_q == 0).sum() >= 100 and (twin_q > 0).sum() >= 60  # every branch, often
+    assert (twin_q[0, :, -1] == 0).any() and (twin_q[0, :, -1] > 0).any()  # either side of the camera on ray 0
+    got_q = camera_quality(index, o, d_scaled, ts_scaled, pw, 30.0)
+    torch.testing.assert_close(got_q, twin_q, atol=2e-5, rtol=1e-4)  # the index is float32
+    for rep in (None, t_rep):  # every camera, then the candidates at t_rep
+        got = coverage_scores(index, o, d_scaled, ts_scaled, pw, params, None if rep is None else rep / scale[:, 0])
+        want = torch.tensor([score_twin(c2w, intr, o[r], d[r], ts[r].tolist(), float(pw[r]), params,
+                                        None if rep is None else float(rep[r])) for r in range(9)])  # fmt: skip
+        torch.testing.assert_close(got, want, atol=2e-5, rtol=1e-4)
+        assert (want > 0).sum() >= 20
+    # float32 rays, as the model's: the same up to float32 rounding
+    got32 = coverage_scores(index, o.float(), d_scaled.float(), ts_scaled.float(), pw.float(), params,
+                            t_rep=(t_rep / scale[:, 0]).float())  # fmt: skip
+    assert got32.dtype == torch.float32
+    torch.testing.assert_close(got32.double(), want, atol=1e-4, rtol=1e-4)
+    # No rays, no cameras.
+    assert coverage_scores(index, o[:0], d[:0], ts[:0], pw[:0], params, t_rep=t_rep[:0]).shape == (0, ts.shape[1])
+    empty = CameraIndex(w2c=index.w2c[:0], intrinsics=index.intrinsics[:0])
+    assert camera_quality(empty, o, d, ts, pw, 30.0).shape == (9, ts.shape[1], 0)
+
+
+def test_blend_skips_only_scores_that_cannot_change_the_weights():
+    """``blend`` scores a NeRF only on the rays where it takes part with another (``sample_coverage_scores``'
+    ``needed``): the weights do not depend on the other scores (a lone NeRF takes all the weight, one left out none).
+    And ``coverage_weights``' one ``idw_weights`` call is the covered / uncovered selection between two."""
+    g = torch.Generator().manual_seed(15)
+    scores = torch.rand(3, 50, 6, generator=g) * (torch.rand(3, 50, 6, generator=g) > 0.4)
+    distances = torch.rand(3, 50, 6, generator=g) + 0.1
+    mask = torch.rand(3, 50, generator=g) > 0.6
+    mask[torch.randint(0, 3, (50,), generator=g), torch.arange(50)] = True  # every ray keeps one NeRF at least
+    needed = mask & (mask.sum(0) > 1)
+    assert (mask.sum(0) == 1).any() and (mask.sum(0) == 2).any() and needed.any()
+    noise = torch.where(needed[..., None], scores, torch.rand(3, 50, 6, generator=g))
+    for gamma in (0.0, 0.7, 5.0, math.inf):
+        w = coverage_weights(scores, distances, gamma, mask)
+        assert torch.equal(coverage_weights(noise, distances, gamma, mask), w)
+        covered = ((scores > 0) & mask[..., None]).any(0, keepdim=True)
+        pseudo = torch.where(scores > 0, 1.0 / scores.clamp(min=torch.finfo(scores.dtype).tiny), math.inf)
+        pseudo = torch.where(covered, pseudo, torch.ones_like(pseudo))
+        two = torch.where(covered, idw_weights(pseudo, gamma, mask), idw_weights(distances, gamma, mask))
+        assert torch.equal(w, two)
+    # Scores of the needed rays alone: the same as all rays', zeros elsewhere.
+    c2w, intr = random_cameras(9, seed=16)
+    cameras = [index_of(c2w[:5], intr[:5]), index_of(c2w[3:], intr[3:]), index_of(c2w[::2], intr[::2])]
+    o, d, ts, pw = rays(50, seed=17)
+    starts = ts[:, :6]
+    merged = MergedSamples(starts=starts, ends=torch.cat([starts[:, 1:], ts[:, 6:]], dim=-1),
+                           weights=torch.rand(3, 50, 6, generator=g, dtype=torch.float64) * 0.2,
+                           rgbs=torch.rand(3, 50, 6, 3, generator=g, dtype=torch.float64))  # fmt: skip
+    params = CoverageParams(sigma_deg=30.0, k=2, candidates=3)
+    every = sample_coverage_scores(merged, cameras, o, d, pw, params)
+    some = sample_coverage_scores(merged, cameras, o, d, pw, params, needed)
+    assert (every[needed] > 0).any()
+    torch.testing.assert_close(some[needed], every[needed])
+    assert (some[~needed] == 0).all()
