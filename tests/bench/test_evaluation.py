@@ -290,10 +290,14 @@ def test_evaluate_quick_mode_writes_every_section_and_caches(tmp_path):
     reg = report["registration"]
     assert reg["cases"] == 2 and set(reg["rows"]) == {
         "nerfuser_ns",
+        "paper-faithful",
         *(f"{m}/{c}" for m in ("icp", "fgr", "ransac") for c in ("NeRF clouds", "RGB-D (GT depth)")),
     }
-    for row in reg["rows"].values():
-        assert row["n"] == 2 and 0.0 <= row["success_rate"] <= 1.0
+    for label, row in reg["rows"].items():
+        # the paper-faithful case runs once per scene (its hemisphere poses do not depend on the draw)
+        assert row["n"] == (1 if label == "paper-faithful" else 2) and 0.0 <= row["success_rate"] <= 1.0
+    (faithful,) = reg["paper_faithful_cases"]
+    assert faithful["case"] == "demo/paper-faithful" and len(faithful["nerfs"]) == 1
     (blend,) = report["blending"]
     for q in blend["quality"]["ground-truth"].values():
         assert 5.0 < q["psnr"] < 60.0 and 0.0 < q["ssim"] <= 1.0
@@ -301,7 +305,8 @@ def test_evaluate_quick_mode_writes_every_section_and_caches(tmp_path):
     assert [float(g) for g in gamma["psnr"]] == [0.1, 5.0, 100.0]
     png = (out / gamma["plot"]).read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
-    assert [(r["count"], r["source"]) for r in report["pose_ablation"]["rows"]] == [(8, "training"), (8, "both")]
+    arms = [(r["count"], r["source"]) for r in report["pose_ablation"]["rows"]]
+    assert arms == [(8, "training"), (8, "both"), (8, "hemisphere")]
     (cost,) = report["cost"]["render"]
     assert cost["ratio"] > 0 and cost["num_rays"] == 1024
     md = (out / "report.md").read_text()
