@@ -809,3 +809,16 @@ def test_a_failed_self_check_names_the_likely_cause_of_its_mode(mode):
     message = failure_message([good, bad], ["a", "b", "c"], config)
     assert message.startswith("b and c: cross-render self-check failed (NCC 0.10 < ")  # the worse direction
     assert ("SfM" in message) == (mode == "sfm") and ("pose graph" in message) == (mode == "graph")
+
+
+@pytest.mark.parametrize("source", ["hemisphere", "training", "both"])
+def test_a_failed_self_check_suggests_what_fits_its_pose_source(source):
+    """The advice names options of the poses that failed: no hemisphere radius for training poses, no training
+    poses for a run that already rendered them."""
+    from nerfuser_ns.registration.self_check import CrossRenderCheck, failure_message
+
+    config = reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(source=source))
+    message = failure_message([CrossRenderCheck(0, 1, 0.1, 0.2, 4)], ["a", "b"], config)
+    assert ("--sampling.radius" in message) == (source == "hemisphere")
+    assert ("--sampling.max-training-poses" in message) == (source != "hemisphere")
+    assert ("--mode known-geometry" in message) == (source != "hemisphere")

@@ -25,6 +25,21 @@ SUGGESTION = (
     "render more poses (--sampling.num-poses), a larger radius (--sampling.radius) or the run's training poses "
     "(--sampling.source training|both)"
 )
+"""What to try when the hemisphere poses do not register (:func:`suggestion` per pose source)."""
+SUGGESTIONS = {
+    "hemisphere": SUGGESTION,
+    "training": "render more training poses (--sampling.max-training-poses), add hemisphere poses (--sampling.source "
+    "both) or register on known geometry (--mode known-geometry)",
+    "both": "render more poses (--sampling.max-training-poses, --sampling.num-poses) or register on known geometry "
+    "(--mode known-geometry)",
+}
+
+
+def suggestion(source: str) -> str:
+    """What to try when renders from pose source ``source`` did not register (the hemisphere's advice by default)."""
+    return SUGGESTIONS.get(source, SUGGESTION)
+
+
 DEFAULT_RENDER_SIZE = (400, 300, 60.0)
 """Render width, height and horizontal field of view when the reference run's training cameras are unknown."""
 
@@ -201,6 +216,9 @@ class GraphConfig:
     ray_address: str | None = None
     """With ``executor ray``: the Ray cluster to join (e.g. ``auto``, ``ray://head:10001``; every worker must see the
     work folder); default: start Ray on this machine."""
+    ray_gpus_per_task: float | None = None
+    """With ``executor ray``: GPUs each rendering task (a NeRF's renders, a pair's cross-renders) asks Ray for
+    (fractions share a GPU); default: 1 when the cluster has GPUs, else 0."""
 
 
 @dataclass
@@ -300,6 +318,8 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
         (gc.executor in ("serial", "ray"), f"unknown --graph.executor {gc.executor!r}; use serial or ray"),
         (gc.ray_address is None or gc.executor == "ray",
          f"--graph.ray-address {gc.ray_address} is for --graph.executor ray; pass both or neither"),
+        (gc.ray_gpus_per_task is None or gc.ray_gpus_per_task >= 0,
+         f"--graph.ray-gpus-per-task must be >= 0, got {gc.ray_gpus_per_task}"),
     ]
     for item in gc.neighbours:
         a, sep, b = str(item).partition(":")

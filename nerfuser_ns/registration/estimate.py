@@ -14,7 +14,7 @@ import numpy as np
 from jaxtyping import Float
 
 from nerfuser_ns import sim3
-from nerfuser_ns.registration.config import SUGGESTION, RegistrationConfig, RegistrationError
+from nerfuser_ns.registration.config import RegistrationConfig, RegistrationError, suggestion
 from nerfuser_ns.registration.render_cache import ViewSet
 from nerfuser_ns.registration.sfm import SfMResult
 
@@ -50,9 +50,11 @@ def estimate_transform(views: ViewSet, sfm: SfMResult, config: RegistrationConfi
             method = "weiszfeld" if config.estimator == "nerfuser" else "median"
             est = sim3.estimate_sim3_from_poses(views.c2w, G_sfm, method=method)
     except (ValueError, RuntimeError) as e:
-        raise RegistrationError(f"{views.name}: the SIM(3) estimate failed ({e}); {SUGGESTION}") from None
+        raise RegistrationError(
+            f"{views.name}: the SIM(3) estimate failed ({e}); {suggestion(config.sampling.source)}") from None
     if not (np.isfinite(est.T).all() and est.scale > 0):
-        raise RegistrationError(f"{views.name}: the SIM(3) estimate is NaN or degenerate; {SUGGESTION}")
+        raise RegistrationError(
+            f"{views.name}: the SIM(3) estimate is NaN or degenerate; {suggestion(config.sampling.source)}")
     return NerfEstimate(est, G_sfm)
 
 

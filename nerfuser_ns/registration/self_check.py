@@ -16,7 +16,7 @@ from jaxtyping import Float
 
 from nerfuser_ns import appearance, sim3
 from nerfuser_ns.cameras import Intrinsics
-from nerfuser_ns.registration.config import SUGGESTION, RegistrationConfig
+from nerfuser_ns.registration.config import RegistrationConfig, suggestion
 from nerfuser_ns.registration.render_cache import ViewSet, to_uint8
 from nerfuser_ns.registration.sfm import SfMResult
 from nerfuser_ns.renderers import Renderer
@@ -222,6 +222,7 @@ def failure_message(checks: Sequence[CrossRenderCheck], names: Sequence[str], co
             what = "saw nothing in common" if not np.isfinite(c.score) else f"NCC {c.score:.2f}"
             return (
                 f"{names[c.i]} and {names[c.j]}: cross-render self-check failed ({what} < {config.ncc_threshold}); "
-                f"{LIKELY_CAUSE[config.mode]}; {SUGGESTION} (or calibrate --ncc-threshold for blurry renders)"
+                f"{LIKELY_CAUSE[config.mode]}; {suggestion(config.sampling.source)} (or calibrate --ncc-threshold for "
+                f"blurry renders)"
             )
     return None
