@@ -333,6 +333,7 @@ def run_case(cfg: BenchScale, n: int, case: str, work: Path) -> dict:
             **{s: status_of.count(s) for s in ("kept", "unverified", "dropped", "rejected")},
             "dropped_pairs": [e["names"] for e in g["edges"] if e["status"] == "dropped"],
             "cycles": len(g["cycles"]), "cycles_passed": sum(c["passed"] for c in g["cycles"]),
+            "tasks_s": g.get("tasks_s"),
         }  # fmt: skip
     return out
 
@@ -487,6 +488,24 @@ def markdown(report: dict) -> str:
         diff = report["ray_vs_serial"].get(str(n))
         if diff is not None:
             lines += ["", f"Ray vs serial: largest transform difference {diff:.3g}."]
+        lines.append("")
+    tasks = [r for r in report["cases"] if (r.get("graph") or {}).get("tasks_s")]
+    if tasks:
+        lines += ["## Tasks of the graph mode", "",
+                  "Each task's own time where it ran (no queueing, no transfers): what a Ray cluster runs side by "
+                  "side. render and lift: one per NeRF; pair: one per candidate pair (3D matching, hypotheses, "
+                  "cross-render choice and check).", "",
+                  "| blocks | case | render s (median / max) | lift s | pair s | tasks |",
+                  "| ---: | --- | --- | --- | --- | --- |"]  # fmt: skip
+        for r in tasks:
+            t = r["graph"]["tasks_s"]
+
+            def cell(kind: str, t=t) -> str:
+                v = sorted(t.get(kind) or [])
+                return "-" if not v else f"{statistics.median(v):.1f} / {v[-1]:.1f}"
+
+            lines.append(f"| {r['blocks']} | {r['case']} | {cell('render')} | {cell('lift')} | {cell('pair')} | "
+                         + ", ".join(f"{len(v)} {k}" for k, v in t.items()) + " |")
         lines.append("")
     wrong = [r for r in report["cases"] if r["case"] == "graph-wrong-edge"]
     if wrong:

@@ -14,6 +14,7 @@ from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.registration import pose_graph as pg
 from nerfuser_ns.registration import retrieval
+from nerfuser_ns.registration.distributed import SerialExecutor
 from nerfuser_ns.scripts.register import print_summary
 
 
@@ -302,6 +303,25 @@ def test_graph_mode_without_gtsam_is_one_line_before_rendering(street, tmp_path,
     assert not (tmp_path / "renders").exists()
 
 
+def _power(x: int, e: int) -> int:
+    return x**e
+
+
+def test_serial_executor_keeps_order_and_times_each_task():
+    ex = SerialExecutor()
+    assert ex.map(_power, [(3, 2), (2, 3), (5, 1)], "power") == [9, 8, 5]
+    assert ex.map(_power, [(2, 2)], "power", uses_gpu=True) == [4]  # no GPU asked of this process
+    assert len(ex.task_seconds["power"]) == 4 and all(t >= 0 for t in ex.task_seconds["power"])
+
+
+def test_graph_rejects_negative_ray_gpus(street, tmp_path):
+    cfg = graph_config()
+    cfg.graph.executor, cfg.graph.ray_gpus_per_task = "ray", -1.0
+    with pytest.raises(reg.RegistrationError, match="ray-gpus-per-task must be >= 0"):
+        reg.register(street[1], cfg, tmp_path, QUIET)
+    assert not (tmp_path / "renders").exists()  # refused before any work
+
+
 def test_ray_tasks_give_the_serial_result(street, work, tmp_path):
     """Renders, keypoints and pair registrations as Ray tasks on this machine, in a fresh work folder (every render
     made by a task, written to the render cache), give the serial run's transforms and graph exactly."""
@@ -311,6 +331,9 @@ def test_ray_tasks_give_the_serial_result(street, work, tmp_path):
     cfg.graph.executor = "ray"
     distributed = reg.register(renderers, cfg, tmp_path, QUIET)
     assert [n["T_to_reference"] for n in distributed["nerfs"]] == [n["T_to_reference"] for n in serial["nerfs"]]
+    tasks = {kind: len(t) for kind, t in serial["graph"].pop("tasks_s").items()}
+    assert {kind: len(t) for kind, t in distributed["graph"].pop("tasks_s").items()} == tasks
+    assert tasks == {"render": 3, "lift": 3, "pair": len(serial["graph"]["edges"])}
     assert distributed["graph"] == serial["graph"]
     assert distributed["reused"]["renders"] == [False] * 3
     assert all((tmp_path / "renders" / n["render_folder"].rsplit("/", 1)[-1] / "depth.npz").is_file()

@@ -10,20 +10,34 @@ Ray is optional (the ``city`` extra) and imported only when asked for (its impor
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from nerfuser_ns.registration.config import RegistrationError
 
 RAY_MISSING = 'distributing the work with Ray needs Ray: pip install "nerfuser_ns[city]"'
 
 
+def timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """``fn(*args)`` and the seconds it took where it ran (a task's own time, without queueing or transfers)."""
+    t0 = time.perf_counter()
+    out = fn(*args)
+    return out, time.perf_counter() - t0
+
+
 class Executor(Protocol):
-    """Runs ``fn(*args)`` for every args tuple; results in the order given."""
+    """Runs ``fn(*args)`` for every args tuple; results in the order given. Each task's own seconds are kept per
+    ``description`` in :attr:`task_seconds`."""
 
     name: str
+    task_seconds: dict[str, list[float]]
 
-    def map(self, fn: Callable[..., Any], args: Sequence[tuple]) -> list[Any]: ...
+    def map(self, fn: Callable[..., Any], args: Sequence[tuple], description: str = "task",
+            uses_gpu: bool = False) -> list[Any]: ...  # fmt: skip
 
     def close(self) -> None: ...
 
@@ -33,20 +47,31 @@ class SerialExecutor:
 
     name = "serial"
 
-    def map(self, fn: Callable[..., Any], args: Sequence[tuple]) -> list[Any]:
-        return [fn(*a) for a in args]
+    def __init__(self) -> None:
+        self.task_seconds: dict[str, list[float]] = {}
+
+    def map(self, fn: Callable[..., Any], args: Sequence[tuple], description: str = "task",
+            uses_gpu: bool = False) -> list[Any]:  # fmt: skip
+        """``uses_gpu`` is for the Ray executor: here the tasks run on this process's device."""
+        out = [timed(fn, *a) for a in args]
+        self.task_seconds.setdefault(description, []).extend(round(t, 3) for _, t in out)
+        return [r for r, _ in out]
 
     def close(self) -> None:
         pass
 
 
 class RayExecutor:
-    """One Ray task per call (one CPU each). Connects to ``address`` (e.g. ``auto`` or ``ray://head:10001``), or starts
-    Ray on this machine when it is None; :meth:`close` stops only a Ray this executor started."""
+    """One Ray task per call, one CPU each, and ``gpus_per_task`` GPUs for tasks that render (``uses_gpu``): by
+    default one GPU when the cluster has any (Ray hides the GPUs from a task that asks for none, so a NeRF loaded on
+    ``cuda`` needs it), none otherwise. Connects to ``address`` (e.g. ``auto`` or ``ray://head:10001``), or starts Ray
+    on this machine when it is None; :meth:`close` stops only a Ray this executor started. Progress over the tasks of
+    each :meth:`map` on ``console``."""
 
     name = "ray"
 
-    def __init__(self, address: str | None = None):
+    def __init__(self, address: str | None = None, gpus_per_task: float | None = None,
+                 console: Console | None = None):  # fmt: skip
         try:
             import ray  # lazy: only this executor needs it, and its import takes seconds
         except ImportError:
@@ -54,16 +79,22 @@ class RayExecutor:
         # Ray would otherwise report usage statistics over the network
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
         self._ray = ray
+        self._console = console or Console(quiet=True)
+        self.task_seconds: dict[str, list[float]] = {}
         self._started = not ray.is_initialized()
         if self._started:
             try:
                 ray.init(address=address, include_dashboard=False, log_to_driver=False)
-            except (ConnectionError, ValueError, RuntimeError) as e:
+            except Exception as e:  # noqa: BLE001 - Ray raises bare Exceptions too (e.g. a node that timed out starting)
                 where = "on this machine" if address is None else f"at {address}"
                 raise RegistrationError(f"cannot start or reach Ray {where}: {str(e).splitlines()[0]}") from None
+        if gpus_per_task is None:
+            gpus_per_task = 1.0 if ray.cluster_resources().get("GPU", 0) > 0 else 0.0
+        self.gpus_per_task = float(gpus_per_task)
 
-    def map(self, fn: Callable[..., Any], args: Sequence[tuple]) -> list[Any]:
-        remote = self._ray.remote(num_cpus=1)(fn)
+    def map(self, fn: Callable[..., Any], args: Sequence[tuple], description: str = "task",
+            uses_gpu: bool = False) -> list[Any]:  # fmt: skip
+        remote = self._ray.remote(num_cpus=1, num_gpus=self.gpus_per_task if uses_gpu else 0)(timed)
         stored: dict[int, Any] = {}
 
         def ref(x: Any) -> Any:
@@ -74,17 +105,30 @@ class RayExecutor:
                 return stored[id(x)]
             return x
 
-        return self._ray.get([remote.remote(*[ref(x) for x in a]) for a in args])
+        pending = [remote.remote(fn, *[ref(x) for x in a]) for a in args]
+        index = {r: n for n, r in enumerate(pending)}
+        results: list[Any] = [None] * len(pending)
+        columns = (TextColumn(f"Ray: {description} tasks"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+        with Progress(*columns, console=self._console, transient=True) as progress:
+            bar = progress.add_task(description, total=len(pending))
+            while pending:
+                done, pending = self._ray.wait(pending, num_returns=1)
+                for r in done:
+                    results[index[r]] = self._ray.get(r)
+                    progress.advance(bar)
+        self.task_seconds.setdefault(description, []).extend(round(t, 3) for _, t in results)
+        return [r for r, _ in results]
 
     def close(self) -> None:
         if self._started and self._ray.is_initialized():
             self._ray.shutdown()
 
 
-def make_executor(kind: str, address: str | None = None) -> Executor:
+def make_executor(kind: str, address: str | None = None, gpus_per_task: float | None = None,
+                  console: Console | None = None) -> Executor:  # fmt: skip
     """The executor ``kind`` names (serial or ray); bad input is one :class:`RegistrationError` line."""
     if kind == "serial":
         return SerialExecutor()
     if kind == "ray":
-        return RayExecutor(address)
+        return RayExecutor(address, gpus_per_task, console)
     raise RegistrationError(f"unknown --graph.executor {kind!r}; use serial or ray")

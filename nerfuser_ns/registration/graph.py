@@ -148,7 +148,7 @@ def register_graph(
         raise RegistrationError(str(e)) from None
     gc = config.graph
     given = _parse_neighbours(gc.neighbours, [r.name for r in renderers])
-    executor = make_executor(gc.executor, gc.ray_address)
+    executor = make_executor(gc.executor, gc.ray_address, gc.ray_gpus_per_task, console)
     try:
         return _register_graph(renderers, config, work_dir, console, ref, min_views, intr, given, executor)
     finally:
@@ -185,7 +185,7 @@ def _register_graph(
     # one task per pair; in this process it reports progress on the console, as a Ray task it stays quiet
     task_console = console if executor.name == "serial" else None
     outcomes = executor.map(_register_pair, [(renderers, views, feats, similarity, a, b, intr, config, task_console)
-                                             for a, b in candidates])  # fmt: skip
+                                             for a, b in candidates], "pair", uses_gpu=True)  # fmt: skip
     for (a, b), out in zip(candidates, outcomes, strict=True):
         matches[(a, b)], hypotheses[(a, b)] = out.matches, out.hypotheses
         if out.check is not None:
@@ -236,6 +236,11 @@ def _register_graph(
         rejected=rejected, accepted=accepted, solved=solved, lengths=lengths,
         keypoints={names[i]: f.counts for i, f in enumerate(feats)},
     )  # fmt: skip
+    # each task's own seconds (render and lift per NeRF, registration per pair): what a cluster runs side by side
+    section["tasks_s"] = {kind: list(t) for kind, t in executor.task_seconds.items()}
+    console.print(f"graph tasks ({executor.name}): " + "; ".join(
+        f"{len(t)} {kind}, median {sorted(t)[len(t) // 2]:.1f} s, max {max(t):.1f} s"
+        for kind, t in executor.task_seconds.items() if t))  # fmt: skip
     record = build_known_geometry_result(
         renderers=renderers, views=views, T_to_ref=T_to_ref, T_initial=solved.T_initial,
         views_matched=views_matched(feats, matches, kept, k), overlap=overlap, checks=checks, config=config,

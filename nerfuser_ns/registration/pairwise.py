@@ -245,14 +245,15 @@ def render_and_lift(
     task_console = console if executor.name == "serial" else None
     kg = config.known_geometry
     t0 = time.perf_counter()
-    views = executor.map(render_one, [(r, config.sampling, work_dir / "renders", task_console) for r in renderers])
+    views = executor.map(render_one, [(r, config.sampling, work_dir / "renders", task_console) for r in renderers],
+                         "render", uses_gpu=True)  # fmt: skip
     timings["render"] = time.perf_counter() - t0
     check_kept_views(views, min_views, config.sampling)
 
     t0 = time.perf_counter()
     with console.status("known geometry: SIFT keypoints lifted to 3D with the rendered depth"):
         feats = executor.map(lift_keypoints, [(vs, intr, kg, config.sfm.num_threads, config.sfm.verbose)
-                                              for vs in views])  # fmt: skip
+                                              for vs in views], "lift")  # fmt: skip
     for vs, f in zip(views, feats, strict=True):
         if len(f.view) < kg.min_inliers:
             raise RegistrationError(
