@@ -428,16 +428,7 @@ def markdown(report: dict) -> str:
             "| case | NeRF | views registered | r_err | t_err | s_err | ok |",
             "| --- | --- | --- | --- | --- | --- | --- |",
         ]
-        for case in r["per_case"]:
-            for n in case["nerfs"]:
-                lines.append(
-                    f"| {case['case']} | {n['name']} | {n.get('views', {}).get('registered', '-')} | "
-                    f"{_num(n.get('r_err_deg'))} | {_num(n.get('t_err'), 5)} | {_num(n.get('s_err'), 5)} | "
-                    f"{'yes' if not n['failure'] else 'no'} |"
-                )
-            if case["status"] != "ok":
-                lines.append(f"| {case['case']} | (error) | {case['error']} | | | | no |")
-        for case in r.get("paper_faithful_cases", []):
+        for case in [*r["per_case"], *r.get("paper_faithful_cases", [])]:
             for n in case["nerfs"]:
                 lines.append(
                     f"| {case['case']} | {n['name']} | {n.get('views', {}).get('registered', '-')} | "
