@@ -71,29 +71,6 @@ def project(
     return np.stack([fx * p[:, 0] / z + cx, fy * -p[:, 1] / z + cy], axis=-1)
 
 
-def _skew(v: Float[np.ndarray, "*bs 3"]) -> Float[np.ndarray, "*bs 3 3"]:
-    """Cross-product matrices: ``_skew(v) @ w == np.cross(v, w)``."""
-    W = np.zeros(v.shape[:-1] + (3, 3))
-    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    return W - np.swapaxes(W, -1, -2)
-
-
-def _so3_left_jacobian(omega: Float[np.ndarray, "*bs 3"]) -> Float[np.ndarray, "*bs 3 3"]:
-    """Left Jacobian ``J`` of :func:`sim3.so3_exp`: ``so3_exp(omega + d) = so3_exp(J d) so3_exp(omega) + O(|d|^2)``.
-
-    ``J = I + (1 - cos t) / t^2 [omega]_x + (t - sin t) / t^3 [omega]_x^2`` with ``t = |omega|``.
-    """
-    omega = np.asarray(omega, dtype=np.float64)
-    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
-    W = _skew(omega)
-    # Taylor expansions near 0 avoid 0/0 and the cancellation in t - sin t.
-    small = theta < 1e-3
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(safe)) / safe**2)
-    b = np.where(small, 1 / 6 - theta**2 / 120, (safe - np.sin(safe)) / safe**3)
-    return np.eye(3) + a * W + b * (W @ W)
-
-
 @dataclass
 class _BundleProblem:
     """The least-squares problem of :func:`refine_sim3_bundle`: ``x = [7 increments per moving NeRF, points]``."""
@@ -222,7 +199,7 @@ def _bundle_problem(
         if free:  # the reference's rows get (dropped) increment columns too
             xi = x[:n_t].reshape(-1, 7)
             u = P - xi[obs_slot, 3:6]
-            J[:, :, :3] = np.cross(gA, u[:, None]) @ _so3_left_jacobian(xi[:, :3])[obs_slot]
+            J[:, :, :3] = np.cross(gA, u[:, None]) @ sim3.so3_left_jacobian(xi[:, :3])[obs_slot]
             J[:, :, 3:6] = -gA
             J[:, :, 6] = -np.einsum("orj,oj->or", gA, u)
         return csr_matrix((J.ravel()[gather], indices, indptr), shape=shape)

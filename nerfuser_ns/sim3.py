@@ -158,19 +158,41 @@ def project_to_sim3(M: Float[np.ndarray, "*bs r 4"]) -> Float[np.ndarray, "*bs 4
     return make_sim3(project_to_so3(A), M[..., :3, 3], sv.mean(axis=-1))
 
 
+def so3_hat(v: Float[np.ndarray, "*bs 3"]) -> Float[np.ndarray, "*bs 3 3"]:
+    """Cross-product matrices: ``so3_hat(v) @ w == np.cross(v, w)``."""
+    v = np.asarray(v, dtype=np.float64)
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    return K - np.swapaxes(K, -1, -2)
+
+
 def so3_exp(omega: Float[np.ndarray, "*bs 3"]) -> Float[np.ndarray, "*bs 3 3"]:
     """Rotation matrices from rotation vectors (axis * angle in radians), Rodrigues' formula."""
     omega = np.asarray(omega, dtype=np.float64)
     theta = np.linalg.norm(omega, axis=-1)[..., None, None]
-    K = np.zeros(omega.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -omega[..., 2], omega[..., 1], -omega[..., 0]
-    K = K - np.swapaxes(K, -1, -2)
+    K = so3_hat(omega)
     # Taylor expansions near 0 avoid 0/0; the switch point keeps both branches at full double precision.
     small = theta < 1e-4
     safe = np.where(small, 1.0, theta)
     a = np.where(small, 1 - theta**2 / 6, np.sin(safe) / safe)
     b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(safe)) / safe**2)
     return np.eye(3) + a * K + b * (K @ K)
+
+
+def so3_left_jacobian(omega: Float[np.ndarray, "*bs 3"]) -> Float[np.ndarray, "*bs 3 3"]:
+    """Left Jacobian ``J`` of :func:`so3_exp`: ``so3_exp(omega + d) = so3_exp(J d) so3_exp(omega) + O(|d|^2)``.
+
+    ``J = I + (1 - cos t) / t^2 [omega]_x + (t - sin t) / t^3 [omega]_x^2`` with ``t = |omega|``.
+    """
+    omega = np.asarray(omega, dtype=np.float64)
+    theta = np.linalg.norm(omega, axis=-1)[..., None, None]
+    W = so3_hat(omega)
+    # Taylor expansions near 0 avoid 0/0 and the cancellation in t - sin t.
+    small = theta < 1e-3
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(safe)) / safe**2)
+    b = np.where(small, 1 / 6 - theta**2 / 120, (safe - np.sin(safe)) / safe**3)
+    return np.eye(3) + a * W + b * (W @ W)
 
 
 def random_rotation(rng: np.random.Generator, size: tuple[int, ...] = ()) -> Float[np.ndarray, "*size 3 3"]:
