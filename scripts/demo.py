@@ -1,16 +1,16 @@
-"""The main job on the bundled demo scene: scene -> NeRFs -> renders (-> registration -> blending as they land).
+"""The main job on the bundled demo scene: scene -> NeRFs -> registration -> blending, scored against ground truth.
 
 1. Generates the object-centric ground-truth demo scene (deterministic, ~40 s) unless it is there already.
 2. Loads the two shipped nerfacto-cpu runs (``demo/runs/``) from their own config.yml, or trains them from
    scratch with ``--rebuild`` (~15 minutes on 2 CPU cores).
-3. Renders every world-frame test view from each NeRF (mapped into the NeRF's frame with the ground-truth
-   SIM(3)) and scores it against the ground-truth image: the paper's single-"NeRF" baseline.
-4. Registers the two NeRFs from their re-renderings with ``ns-nerfuser-register`` (their training poses,
-   320x240; renders and SfM are cached in ``<output-dir>/registration_work``) and reports its error against the
-   ground truth (``--no-register`` skips it).
-5. Fuses the two NeRFs (common frame: capture_a's NeRF frame) with the ground-truth and with the estimated
-   transforms and renders the test views with every blend method in one pass (NeRF, Nearest, IDW-2D, IDW-3D,
-   IDW-Sample), scored the same way.
+3. Registers the two NeRFs from their re-renderings with ``ns-nerfuser-register`` (its defaults, with 24 training
+   poses per NeRF rendered at the training images' 192x144; renders and SfM are cached in
+   ``<output-dir>/registration_work``) and reports its error against the ground truth (``--no-register`` skips it,
+   ``--registration FILE`` uses an existing registration file instead).
+4. Fuses the two NeRFs (common frame: capture_a's NeRF frame) with the ground-truth and with the estimated
+   transforms and renders the world-frame test views with every blend method of the paper in one pass (NeRF, i.e.
+   capture_a alone, the paper's single-NeRF baseline; Nearest, IDW-2D, IDW-3D, IDW-Sample), scored against the
+   ground-truth images.
 
 Outputs go to ``--output-dir``: PNG renders and ``summary.json``.
 
@@ -24,14 +24,30 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+import torch
 import tyro
+from PIL import Image
+from rich.console import Console
+from rich.table import Table
 
+from nerfuser_ns import runs, sim3
+from nerfuser_ns.bench import metrics
+from nerfuser_ns.bench.ground_truth import ground_truth_errors, nerf_to_world_from_captures
+from nerfuser_ns.bench.scenes import benchmark_params, generate_scene, layout_from_ground_truth
+from nerfuser_ns.blending import PAPER_BLEND_METHODS
 from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.model import fuse_models
+from nerfuser_ns.registration import RegistrationError, read_registration
+from nerfuser_ns.scripts import register
+from nerfuser_ns.spec import FusionSpecError, read_registered_nerfs
 
 ROOT = Path(__file__).resolve().parents[1]
+REFERENCE = "capture_a"
 
 
 @dataclass
@@ -49,7 +65,11 @@ class DemoConfig:
     max_test_views: int = 12
     """How many world-frame test views to render."""
     register: bool = True
-    """Register the NeRFs from their re-renderings (about 5 minutes on 2 CPU cores; cached for re-runs)."""
+    """Register the NeRFs from their re-renderings (about 2 minutes on 2 CPU cores; cached for re-runs)."""
+    registration: Path | None = None
+    """An existing registration file of the demo runs (capture_a's frame) to blend and score instead of registering."""
+    registration_size: int = 192
+    """Longer side of the registration renders (192: the scene's training images; our evaluation registers at it)."""
     registration_poses: int = 24
     """Training poses per NeRF rendered for the registration."""
 
@@ -58,18 +78,33 @@ def run_configs(runs_dir: Path) -> dict[str, Path]:
     return {name: runs_dir / name / "nerfacto-cpu" / "demo" / "config.yml" for name in ("capture_a", "capture_b")}
 
 
+def register_command(configs: Sequence[Path], output: Path, work_dir: Path, size: int, poses: int) -> list[str]:
+    """``ns-nerfuser-register`` with its defaults but the render size and pose count (and the demo's work folder)."""
+    return [
+        "ns-nerfuser-register",
+        "--configs", *[str(p) for p in configs],
+        "--output", str(output),
+        "--work-dir", str(work_dir),
+        "--sampling.size", str(size),
+        "--sampling.max-training-poses", str(poses),
+    ]  # fmt: skip
+
+
+def estimated_errors(registration: Path, names: Sequence[str], truth: Sequence[np.ndarray]) -> dict[str, dict]:
+    """The paper's r/t/s errors of a registration file of the demo runs (in ``names`` order, the first being the
+    reference) against the ground-truth NeRF -> world SIM(3)s: the registration never sees the truth."""
+    entries = read_registered_nerfs(registration, check_runs=False)
+    if len(entries) != len(names):
+        raise RegistrationError(f"{registration}: {len(entries)} NeRFs, the demo has {len(names)}")
+    T = np.stack([e.nerf_to_common for e in entries])
+    if not np.allclose(T[0], np.eye(4), atol=1e-9):
+        raise RegistrationError(f"{registration}: not in {names[0]}'s frame (its transform is not the identity)")
+    errors = ground_truth_errors(T, truth, reference=0)
+    return {name: {k: v for k, v in e.items() if k != "T_to_reference_true"}
+            for name, e in zip(names, errors, strict=True)}  # fmt: skip
+
+
 def main(cfg: DemoConfig) -> None:
-    import numpy as np
-    import torch
-    from PIL import Image
-    from rich.console import Console
-    from rich.table import Table
-
-    from nerfuser_ns import runs, sim3
-    from nerfuser_ns.bench import metrics
-    from nerfuser_ns.bench.ground_truth import nerf_to_world_from_captures, score_registration
-    from nerfuser_ns.bench.scenes import layout_from_ground_truth
-
     console = Console()
     start = time.perf_counter()
     configs = run_configs(cfg.runs_dir)
@@ -88,110 +123,59 @@ def main(cfg: DemoConfig) -> None:
         subprocess.run(build, check=True, cwd=ROOT)
     elif not (cfg.scene_dir / "ground_truth.json").is_file():
         console.print("[bold]generating the demo scene")
-        subprocess.run(
-            [sys.executable, str(ROOT / "scripts/build_demo.py"), "--scene-dir", str(cfg.scene_dir), "--scene-only"],
-            check=True,
-            cwd=ROOT,
-        )
+        generate_scene(cfg.scene_dir, "object-centric", supersample=2, **benchmark_params("object-centric", 0))
 
     gt = json.loads((cfg.scene_dir / "ground_truth.json").read_text())
-    layout = layout_from_ground_truth(cfg.scene_dir)
-    test = layout.test
+    test = layout_from_ground_truth(cfg.scene_dir).test
     test_dir = cfg.scene_dir / gt["test"]["path"]
-    test_meta = json.loads((test_dir / "transforms.json").read_text())
-    frames = test_meta["frames"][: cfg.max_test_views]
+    frames = json.loads((test_dir / "transforms.json").read_text())["frames"][: cfg.max_test_views]
     c2w_world = np.stack([np.asarray(f["transform_matrix"], dtype=np.float64) for f in frames])
-    gt_images = [
+    target = torch.from_numpy(np.stack([
         np.asarray(Image.open(test_dir / f["file_path"]).convert("RGB"), dtype=np.float32) / 255 for f in frames
-    ]
-    intr = test.intrinsics
-    target = torch.from_numpy(np.stack(gt_images))
+    ]))  # fmt: skip
 
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    summary: dict = {"scene": str(cfg.scene_dir), "nerfs": {}}
-    table = Table(title="demo: each NeRF rendering the world-frame test views (ground-truth SIM(3))")
-    for col in ("NeRF", "step", "test views", "PSNR (dB)", "SSIM", "render s/view"):
-        table.add_column(col)
-    captures = {c["name"]: c for c in gt["captures"]}
-    for name, config_path in configs.items():
-        run = runs.load_run(config_path)
-        capture_to_world = np.asarray(captures[name]["capture_to_world"], dtype=np.float64)
-        # world -> dataset (capture) frame -> NeRF frame
-        world_to_nerf = run.data_to_nerf @ sim3.invert_sim3(capture_to_world)
-        c2w_nerf = sim3.transform_poses(world_to_nerf, c2w_world)
-        cams = runs.make_cameras(c2w_nerf[:, :3], intr)
-        t = time.perf_counter()
-        out = runs.render_views(run.model, cams, outputs=("rgb",), description=f"rendering {name}")
-        per_view = (time.perf_counter() - t) / len(frames)
-        rgb = out["rgb"].clamp(0, 1)
-        scores = metrics.image_metrics(rgb, target)
-        (cfg.output_dir / name).mkdir(exist_ok=True)
-        for i, img in enumerate(rgb):
-            Image.fromarray((img.numpy() * 255 + 0.5).astype(np.uint8)).save(
-                cfg.output_dir / name / f"test_{i:03d}.png"
-            )
-        summary["nerfs"][name] = {
-            "config": str(config_path),
-            "step": run.step,
-            **scores,
-            "render_seconds_per_view": round(per_view, 3),
-        }
-        table.add_row(
-            name, str(run.step), str(len(frames)), f"{scores['psnr']:.2f}", f"{scores['ssim']:.3f}", f"{per_view:.2f}"
-        )
-    # 4. register from re-renderings
-    ref = "capture_a"
-    transforms_sets: dict[str, dict[str, np.ndarray]] = {}
+    captures = {c["name"]: np.asarray(c["capture_to_world"], dtype=np.float64) for c in gt["captures"]}
     loaded = {name: runs.load_run(path) for name, path in configs.items()}
-    world_to_common = loaded[ref].data_to_nerf @ sim3.invert_sim3(np.asarray(captures[ref]["capture_to_world"]))
-    transforms_sets["ground truth"] = {
-        name: world_to_common @ np.asarray(captures[name]["capture_to_world"]) @ sim3.invert_sim3(run.data_to_nerf)
-        for name, run in loaded.items()
+    summary: dict = {"scene": str(cfg.scene_dir), "nerfs": {n: {"config": str(p), "step": loaded[n].step}
+                                                            for n, p in configs.items()}}  # fmt: skip
+    # world -> capture_a's dataset frame -> its NeRF frame: the fusion's common frame
+    world_to_common = loaded[REFERENCE].data_to_nerf @ sim3.invert_sim3(captures[REFERENCE])
+    transforms_sets: dict[str, dict[str, np.ndarray]] = {
+        "ground truth": {
+            name: world_to_common @ captures[name] @ sim3.invert_sim3(run.data_to_nerf) for name, run in loaded.items()
+        }  # fmt: skip
     }
-    if cfg.register:
-        from nerfuser_ns import registration
-        from nerfuser_ns.spec import read_registered_nerfs
 
+    # 3. register from re-renderings (or take the file given)
+    reg_path = cfg.registration
+    if reg_path is None and cfg.register:
         reg_path = cfg.output_dir / "registration.json"
-        command = [
-            str(Path(sys.executable).parent / "ns-nerfuser-register"),
-            "--configs", *[str(p) for p in configs.values()],
-            "--output", str(reg_path),
-            "--work-dir", str(cfg.output_dir / "registration_work"),
-            "--sampling.source", "training",
-            "--sampling.max-training-poses", str(cfg.registration_poses),
-            "--sampling.width", "320", "--sampling.height", "240", "--sampling.fov-deg", "65",
-        ]  # fmt: skip
-        console.print("[bold]registering the NeRFs from their re-renderings")
+        command = register_command(list(configs.values()), reg_path, cfg.output_dir / "registration_work",
+                                   cfg.registration_size, cfg.registration_poses)  # fmt: skip
+        # in this process (the runs' imports are paid once): the same as running the command printed
+        console.print(f"[bold]registering the NeRFs from their re-renderings:[/bold] {' '.join(command)}")
         t = time.perf_counter()
-        result = subprocess.run(command, cwd=ROOT)
-        if result.returncode != 0:
+        if register.run(tyro.cli(register.RegisterCommand, args=command[1:])) != 0:
             raise SystemExit("demo: registration failed (see above); rerun with --no-register to skip it")
-        entries = read_registered_nerfs(reg_path)
-        # scored against the truth afterwards: the registration never sees it
-        truth = nerf_to_world_from_captures([np.asarray(captures[name]["capture_to_world"]) for name in configs],
-                                            [loaded[name].data_to_nerf for name in configs])
-        record = score_registration(registration.read_registered_nerfs(reg_path), truth)
-        transforms_sets["estimated"] = {
-            name: entry.nerf_to_common for name, entry in zip(configs, entries, strict=True)
-        }
-        summary["registration"] = {
-            "file": str(reg_path),
-            "seconds": round(time.perf_counter() - t, 1),
-            "errors": {n["name"]: n.get("ground_truth") for n in record["nerfs"]},
-            "timings_s": record.get("timings_s"),
-        }
+        summary["registration"] = {"seconds": round(time.perf_counter() - t, 1),
+                                   "timings_s": read_registration(reg_path).get("timings_s")}  # fmt: skip
+    if reg_path is not None:
+        names = list(configs)
+        truth = nerf_to_world_from_captures([captures[n] for n in names], [loaded[n].data_to_nerf for n in names])
+        summary.setdefault("registration", {}).update(file=str(reg_path),
+                                                      errors=estimated_errors(reg_path, names, truth))  # fmt: skip
+        entries = read_registered_nerfs(reg_path, check_runs=False)
+        transforms_sets["estimated"] = {name: e.nerf_to_common for name, e in zip(names, entries, strict=True)}
 
-    # 5. blend with every set of transforms
-    from nerfuser_ns.blending import PAPER_BLEND_METHODS
-    from nerfuser_ns.model import fuse_models
-
+    # 4. blend with every set of transforms
     c2w_common = sim3.transform_poses(world_to_common, c2w_world)
-    cams = runs.make_cameras(c2w_common[:, :3], intr)
+    cams = runs.make_cameras(c2w_common[:, :3], test.intrinsics)
     methods = PAPER_BLEND_METHODS  # the paper's Table 2 (ours, coverage, is measured by scripts/bench_blending.py)
     keys = tuple(f"rgb_{m.replace('-', '_')}" for m in methods)
     summary["blending"] = {}
-    blend_table = Table(title="demo: blending the two NeRFs (PSNR dB / SSIM on the test views)")
+    blend_table = Table(title=f"demo: blending the two NeRFs (PSNR dB / SSIM on {len(frames)} test views; "
+                              f"NeRF: {REFERENCE} alone)")  # fmt: skip
     blend_table.add_column("method")
     columns = {}
     for label, transforms in transforms_sets.items():
@@ -218,21 +202,21 @@ def main(cfg: DemoConfig) -> None:
     summary["seconds"] = round(time.perf_counter() - start, 1)
     out_path = cfg.output_dir / "summary.json"
     write_text_atomic(out_path, json.dumps(summary, indent=2) + "\n")
-    console.print(table)
-    if "registration" in summary:
-        for name, err in summary["registration"]["errors"].items():
-            if err:
-                console.print(
-                    f"registration {Path(name).parts[-4] if len(Path(name).parts) > 3 else name}: "
-                    f"r_err {err['r_err_deg']:.3f} deg, t_err {err['t_err']:.4f}, s_err {err['s_err']:.4f}"
-                    f"{' FAILURE' if err['failure'] else ''}"
-                )
+    for name, err in summary.get("registration", {}).get("errors", {}).items():
+        if name != REFERENCE:
+            console.print(
+                f"registration of {name} in {REFERENCE}'s frame: r_err {err['r_err_deg']:.3f} deg, "
+                f"t_err {err['t_err']:.4f}, s_err {err['s_err']:.4f}{' FAILURE' if err['failure'] else ''}"
+            )
     console.print(blend_table)
     console.print(f"renders and summary in {cfg.output_dir} ({summary['seconds']} s)")
 
 
 def entrypoint() -> None:
-    main(tyro.cli(DemoConfig))
+    try:
+        main(tyro.cli(DemoConfig))
+    except (RegistrationError, FusionSpecError) as e:
+        raise SystemExit(f"demo: {e}") from None
 
 
 if __name__ == "__main__":

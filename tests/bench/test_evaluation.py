@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tyro
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import evaluation, metrics, scenes
@@ -321,3 +323,42 @@ def test_evaluate_quick_mode_writes_every_section_and_caches(tmp_path):
     assert rerun["cache"] == {"hits": sum(report["cache"].values()) - 1, "misses": 1}
     assert [float(g) for g in rerun["gamma"][0]["psnr"]] == [1.0, 10.0]
     assert rerun["registration"]["rows"] == report["registration"]["rows"]
+
+
+def test_demo_script_scores_a_given_registration(tiny, tmp_path, monkeypatch):
+    """scripts/demo.py on the tiny runs, blending with a registration file given (the ground truth): the estimated
+    column equals the ground-truth one and the registration errors are zero."""
+    spec = importlib.util.spec_from_file_location("demo_script", ROOT / "scripts/demo.py")
+    demo = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "demo_script", demo)  # dataclasses resolve their annotations through it
+    spec.loader.exec_module(demo)
+    runs_dir = tiny.configs[0].parents[3]
+    reg = write_minimal_registration([
+        NerfEntry(n, c, T) for n, c, T in zip(tiny.captures, tiny.configs, tiny.nerf_to_common(), strict=True)
+    ], tmp_path / "reg.json")  # fmt: skip
+    out = tmp_path / "demo"
+    args = ["--scene-dir", str(tiny.scene_dir), "--runs-dir", str(runs_dir), "--output-dir", str(out),
+            "--max-test-views", "2"]  # fmt: skip
+    demo.main(tyro.cli(demo.DemoConfig, args=[*args, "--registration", str(reg)]))
+    summary = json.loads((out / "summary.json").read_text())
+    errors = summary["registration"]["errors"]
+    assert errors["capture_b"]["r_err_deg"] < 1e-6 and errors["capture_b"]["t_err"] < 1e-6
+    blend = summary["blending"]
+    assert set(blend) == {"ground truth", "estimated"}
+    for method in PAPER_BLEND_METHODS:
+        assert blend["estimated"]["methods"][method]["psnr"] == pytest.approx(
+            blend["ground truth"]["methods"][method]["psnr"], abs=1e-4
+        )
+        assert len(list((out / "fused" / "estimated" / method).glob("test_*.png"))) == 2
+    # the registration the demo runs is ns-nerfuser-register's command line with its defaults but size and poses
+    command = demo.register_command(tiny.configs, tmp_path / "r.json", tmp_path / "w", 192, 24)
+    parsed = tyro.cli(demo.register.RegisterCommand, args=command[1:])
+    assert command[0] == "ns-nerfuser-register" and parsed.configs == list(tiny.configs)
+    assert (parsed.sampling.size, parsed.sampling.max_training_poses, parsed.sampling.source) == (192, 24, "auto")
+    # a file in another NeRF's frame is refused with one line naming it
+    shifted = write_minimal_registration([
+        NerfEntry(n, c, T) for n, c, T in zip(tiny.captures, tiny.configs, tiny.nerf_to_common(1), strict=True)
+    ], tmp_path / "reg_b.json")  # fmt: skip
+    monkeypatch.setattr(sys, "argv", ["demo.py", *args, "--registration", str(shifted)])
+    with pytest.raises(SystemExit, match="reg_b.json: not in capture_a's frame"):
+        demo.entrypoint()
