@@ -178,15 +178,21 @@ def training_cameras(scene: SceneRuns, models: Sequence[tuple[str, Model]]) -> l
 
 
 def fused(  # noqa: ANN201 - NerfuserModel
-    models: Sequence[tuple[str, Model]], transforms: Sequence[np.ndarray],
-    cameras: Sequence[TrainingCameras] | None = None, **overrides,
+    models: Sequence[tuple[str, Model]],
+    transforms: Sequence[np.ndarray],
+    cameras: Sequence[TrainingCameras] | None = None,
+    colour_maps: Sequence[np.ndarray | None] | None = None,
+    **overrides,
 ):
     """A fused model of loaded sub-models under the given NeRF -> common transforms (``cameras``: their training
-    cameras, for ``coverage``; ``overrides``: config fields)."""
+    cameras, for ``coverage``; ``colour_maps``: their maps to the reference's colours, applied with
+    ``appearance_matching=True``; ``overrides``: config fields)."""
     if len(models) != len(transforms):
         raise EvaluationError(f"{len(models)} models but {len(transforms)} transforms")
     cams = [None] * len(models) if cameras is None else list(cameras)
-    return fuse_models([(n, m, T, c) for (n, m), T, c in zip(models, transforms, cams, strict=True)], **overrides)
+    maps = [None] * len(models) if colour_maps is None else list(colour_maps)
+    return fuse_models([(n, m, T, c, k) for (n, m), T, c, k in zip(models, transforms, cams, maps, strict=True)],
+                       **overrides)  # fmt: skip
 
 
 def blend_metrics(
@@ -200,14 +206,16 @@ def blend_metrics(
     reference_nerf: int = 0,
     description: str = "blending",
     nerf_cameras: Sequence[TrainingCameras] | None = None,
+    colour_maps: Sequence[np.ndarray | None] | None = None,
 ) -> dict[str, dict[str, float]]:
     """PSNR/SSIM/LPIPS of every blend method on the given views, rendered in one pass (shared sub-model queries);
-    ``coverage`` (ours) needs the runs' ``nerf_cameras``."""
+    ``coverage`` (ours) needs the runs' ``nerf_cameras``; ``colour_maps`` (each NeRF's map to the reference's
+    colours) turn appearance matching (ours) on."""
     if "coverage" in methods and nerf_cameras is None:
         raise EvaluationError("blend method 'coverage' needs the runs' training cameras (nerf_cameras)")
     model = fused(
-        models, transforms, nerf_cameras, gamma=gamma, tau=tau, reference_nerf=reference_nerf,
-        render_all_methods=True, share_outputs=False,
+        models, transforms, nerf_cameras, colour_maps, gamma=gamma, tau=tau, reference_nerf=reference_nerf,
+        render_all_methods=True, share_outputs=False, appearance_matching=colour_maps is not None,
     )  # fmt: skip
     keys = tuple(f"rgb_{m.replace('-', '_')}" for m in methods)
     with torch.no_grad():

@@ -15,6 +15,7 @@ import pytest
 import tyro
 
 from nerfuser_ns import runs, sim3
+from nerfuser_ns.appearance import IDENTITY
 from nerfuser_ns.bench import evaluation, metrics, scenes
 from nerfuser_ns.bench.evaluation import EvaluationError, SceneRuns
 from nerfuser_ns.bench.training import train
@@ -97,6 +98,21 @@ def test_blend_metrics_nerf_method_is_the_reference_alone(tiny, models):
     assert scores["idw-sample"]["psnr"] != pytest.approx(expected["psnr"], abs=1e-3)
     with pytest.raises(EvaluationError, match="2 models but 1 transforms"):
         evaluation.blend_metrics(models, T[:1], cams, target)
+
+
+def test_blend_metrics_apply_the_colour_maps_given(tiny, models):
+    """Identity maps score as no maps; a gain on the second NeRF leaves the reference alone and changes the blends."""
+    cams, target = tiny.test_views(max_views=1)
+    T = tiny.nerf_to_common()
+    methods = ("nerf", "idw-sample")
+    plain = evaluation.blend_metrics(models, T, cams, target, methods=methods)
+    identity = evaluation.blend_metrics(models, T, cams, target, methods=methods, colour_maps=[None, IDENTITY])
+    brighter = np.hstack([np.diag([2.0, 2.0, 2.0]), np.zeros((3, 1))])
+    gained = evaluation.blend_metrics(models, T, cams, target, methods=methods, colour_maps=[None, brighter])
+    for m in methods:
+        assert identity[m]["psnr"] == pytest.approx(plain[m]["psnr"], abs=1e-5)
+    assert gained["nerf"]["psnr"] == pytest.approx(plain["nerf"]["psnr"], abs=1e-5)
+    assert abs(gained["idw-sample"]["psnr"] - plain["idw-sample"]["psnr"]) > 0.05
 
 
 def test_coverage_is_scored_with_the_runs_training_cameras(tiny, models):
