@@ -44,7 +44,7 @@ from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.model import fuse_models
 from nerfuser_ns.registration import RegistrationError, read_registration
 from nerfuser_ns.scripts import register
-from nerfuser_ns.spec import FusionSpecError, read_registered_nerfs
+from nerfuser_ns.spec import FusionSpecError, NerfEntry, read_registered_nerfs
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = "capture_a"
@@ -65,7 +65,7 @@ class DemoConfig:
     max_test_views: int = 12
     """How many world-frame test views to render."""
     register: bool = True
-    """Register the NeRFs from their re-renderings (about 2 minutes on 2 CPU cores; cached for re-runs)."""
+    """Register the NeRFs from their re-renderings (about 1.5 minutes on 2 CPU cores; cached for re-runs)."""
     registration: Path | None = None
     """An existing registration file of the demo runs (capture_a's frame) to blend and score instead of registering."""
     registration_size: int = 192
@@ -90,10 +90,11 @@ def register_command(configs: Sequence[Path], output: Path, work_dir: Path, size
     ]  # fmt: skip
 
 
-def estimated_errors(registration: Path, names: Sequence[str], truth: Sequence[np.ndarray]) -> dict[str, dict]:
-    """The paper's r/t/s errors of a registration file of the demo runs (in ``names`` order, the first being the
-    reference) against the ground-truth NeRF -> world SIM(3)s: the registration never sees the truth."""
-    entries = read_registered_nerfs(registration, check_runs=False)
+def estimated_errors(
+    registration: Path, entries: Sequence[NerfEntry], names: Sequence[str], truth: Sequence[np.ndarray]
+) -> dict[str, dict]:
+    """The paper's r/t/s errors of the NeRFs of a registration file of the demo runs (in ``names`` order, the first
+    being the reference) against the ground-truth NeRF -> world SIM(3)s: the registration never sees the truth."""
     if len(entries) != len(names):
         raise RegistrationError(f"{registration}: {len(entries)} NeRFs, the demo has {len(names)}")
     T = np.stack([e.nerf_to_common for e in entries])
@@ -163,9 +164,9 @@ def main(cfg: DemoConfig) -> None:
     if reg_path is not None:
         names = list(configs)
         truth = nerf_to_world_from_captures([captures[n] for n in names], [loaded[n].data_to_nerf for n in names])
-        summary.setdefault("registration", {}).update(file=str(reg_path),
-                                                      errors=estimated_errors(reg_path, names, truth))  # fmt: skip
         entries = read_registered_nerfs(reg_path, check_runs=False)
+        errors = estimated_errors(reg_path, entries, names, truth)
+        summary.setdefault("registration", {}).update(file=str(reg_path), errors=errors)
         transforms_sets["estimated"] = {name: e.nerf_to_common for name, e in zip(names, entries, strict=True)}
 
     # 4. blend with every set of transforms
