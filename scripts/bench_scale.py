@@ -43,6 +43,7 @@ import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import psutil
@@ -78,6 +79,10 @@ class BenchScale:
     wrong_edge_heaviest: bool = True
     """Give the wrong edge twice the weight of the heaviest edge (a confident wrong registration: the spanning tree
     would take it); --no-wrong-edge-heaviest keeps its own weight."""
+    neighbours: Literal["retrieval", "block-order"] = "retrieval"
+    """Graph mode's candidate pairs: found from the renders (the default of ns-nerfuser-register), or given in block
+    order as a user who knows it would (``--graph.neighbours``: each block with the next two, so every pair lies on a
+    cycle)."""
     renders: int = 16
     """Training poses rendered per NeRF (--sampling.max-training-poses; evenly spaced through the block's cameras)."""
     width: int = 240
@@ -249,6 +254,11 @@ def _mib(x: float) -> float:
     return round(x / 2**20, 1)
 
 
+def block_order_neighbours(n: int) -> tuple[str, ...]:
+    """``--graph.neighbours`` of a drive of ``n`` blocks in order: each block with the next and the one after."""
+    return tuple(f"{i}:{j}" for i in range(n) for j in (i + 1, i + 2) if j < n)
+
+
 def run_case(cfg: BenchScale, n: int, case: str, work: Path) -> dict:
     """Build the drive of ``n`` blocks, register it as ``case`` says, score it against the truth."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
@@ -268,6 +278,8 @@ def run_case(cfg: BenchScale, n: int, case: str, work: Path) -> dict:
                                 self_check_views=cfg.self_check_views)  # fmt: skip
     config.sfm.seed, config.sfm.num_threads = cfg.sfm_seed, cfg.threads
     config.graph.executor = "ray" if case == "graph-ray" else "serial"
+    if cfg.neighbours == "block-order":
+        config.graph.neighbours = block_order_neighbours(n)
     injected: dict = {}
     if case == "graph-wrong-edge":
         install_wrong_edge(cfg, injected)
@@ -439,7 +451,10 @@ def markdown(report: dict) -> str:
         f"(seed {s['seed']}, {s['stops']} rig stops of 8 cameras per block), ground-truth renderers (each block's "
         + (f"street within {s['crop_m']:g} m of its cameras" if s["crop_m"] > 0 else "whole street")
         + f"), {s['renders']} training poses rendered per NeRF at {s['width']}x{s['height']}, self-check "
-        f"{s['self_check_views']} views; sampling seed {s['sampling_seed']}, SfM seed {s['sfm_seed']}. Errors "
+        f"{s['self_check_views']} views; sampling seed {s['sampling_seed']}, SfM seed {s['sfm_seed']}; the graph's "
+        + ("candidate pairs in block order (`--graph.neighbours`: each block with the next two)"
+           if s.get("neighbours") == "block-order" else "candidate pairs from the renders (retrieval)")
+        + ". Errors "
         "against ground truth in the first block's frame (t in its units); drift: the last block's error, its "
         "translation relative to the distance between the first and last block. Memory: `ru_maxrss` of the case's "
         "process (`resource.getrusage`, the driver only) and the peak summed PSS of the case's process tree "
