@@ -34,7 +34,7 @@ import tyro
 from rich.console import Console
 
 from nerfuser_ns import runs
-from nerfuser_ns.bench.evaluation import SceneRuns, blend_metrics, registered_transforms
+from nerfuser_ns.bench.evaluation import SceneRuns, blend_metrics
 from nerfuser_ns.bench.scenes import apply_appearance, benchmark_params, generate_scene
 from nerfuser_ns.bench.training import train_captures
 from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
@@ -103,9 +103,14 @@ def measure(scene: SceneRuns, reg: Path, cfg: BenchAppearance, console: Console)
     layout = scene.ground_truth["layout"]
     gamma, tau = PAPER_OBJECT_CENTRIC if layout == "object-centric" else PAPER_MISSION_BAY
     models = [(n, runs.load_run(p).model) for n, p in zip(scene.captures, scene.configs, strict=True)]
-    transforms = registered_transforms(reg, scene)
-    entries = {e.name: e for e in read_registered_nerfs(reg, check_runs=False)}
-    maps = [entries[n].colour_to_reference for n in scene.captures]
+    # registered in the scene's capture order (_register passes the configs so): the names are the runs' paths
+    entries = read_registered_nerfs(reg, check_runs=False)
+    if [e.config_path.resolve() for e in entries] != [p.resolve() for p in scene.configs]:
+        raise SystemExit(
+            f"bench_appearance: {reg} registers other runs than {scene.name}'s; delete it to register again"
+        )
+    transforms = [e.nerf_to_common for e in entries]
+    maps = [e.colour_to_reference for e in entries]
     gains = _gains(scene)
     cams, target = scene.test_views(reference=0, max_views=cfg.max_test_views)
     target = apply_appearance(target, None if np.array_equal(gains[0], np.ones(3)) else gains[0])
