@@ -20,11 +20,12 @@ import tyro
 class MakeSceneConfig:
     """Render a ground-truth scene: one nerfstudio dataset per capture (own frame), a world-frame test capture."""
 
-    layout: Literal["object-centric", "street", "drive", "room"] = "object-centric"
+    layout: Literal["object-centric", "street", "drive", "room", "row-houses"] = "object-centric"
     """Scene layout: an indoor room with two objects and one capture around each; a street with several
     overlapping captures along it; the same street driven through by a car with a surround camera rig, one
     capture per block of the drive and side-view test cameras between blocks (like the paper's Mission Bay split);
-    or a room of repeated structure (opposite walls alike, paired furniture) with one capture in each half.
+    a room of repeated structure (opposite walls alike, paired furniture) with one capture in each half; or the
+    street lined by one house repeated every 3.5 m (repeated facades).
     """
     output_dir: Path = Path("data/scenes/object-centric")
     """Scene folder to create (replaced atomically if it already holds a generated scene)."""

@@ -54,8 +54,8 @@ from nerfuser_ns.sim3 import decompose_sim3, invert_sim3, make_sim3, transform_p
 
 FORMAT_VERSION = 1
 _NO_BOTTOM = ("-y", "+x", "+y", "-x", "top")
-LayoutName = Literal["object-centric", "street", "drive", "room"]
-LAYOUT_NAMES: tuple[str, ...] = ("object-centric", "street", "drive", "room")
+LayoutName = Literal["object-centric", "street", "drive", "room", "row-houses"]
+LAYOUT_NAMES: tuple[str, ...] = ("object-centric", "street", "drive", "room", "row-houses")
 
 # Photographs stored inside the scikit-image package (checked to load with the network blocked, skimage 0.26).
 # Images that skimage fetches with pooch (e.g. "eagle", "kidney", "lily", "skin") are deliberately absent, and so
@@ -767,7 +767,7 @@ class LayoutParams:
     hfov_deg: float = 65.0
     """Horizontal field of view of every camera."""
     num_captures: int = 3
-    """Number of training captures (street and drive; object-centric and room always have 2)."""
+    """Number of training captures (street, drive and row houses; object-centric and room always have 2)."""
     texels_per_metre: float = 128.0
     """Texture resolution (capped at 2048 texels per surface side)."""
     symmetric: bool = False
@@ -926,9 +926,16 @@ def make_object_centric(params: LayoutParams) -> SceneLayout:
     return SceneLayout("object-centric", params.seed, asdict(params), scene, captures, test)
 
 
-def _street_world(params: LayoutParams, x_caps: np.ndarray) -> tuple[Scene, float]:
+ROW_HOUSE_PERIOD_M = 3.5
+"""Spacing of the row-houses layout's identical houses: the street layout's captures stand 7 m (two houses) apart, so
+every capture's facades repeat in its neighbours' at a whole number of periods."""
+
+
+def _street_world(params: LayoutParams, x_caps: np.ndarray, row_houses: bool = False) -> tuple[Scene, float]:
     """The street scene shared by the street and drive layouts: road along +x, buildings and furniture both sides.
 
+    ``row_houses``: the buildings are one house repeated every :data:`ROW_HOUSE_PERIOD_M` on both sides (same size,
+    same facade and side textures); only the road, the backdrop and the street furniture differ along the street.
     Returns the scene and the half width of the road (facades start there). Draws from the geometry and texture
     streams only, so the cameras of either layout do not change the world.
     """
@@ -943,10 +950,26 @@ def _street_world(params: LayoutParams, x_caps: np.ndarray) -> tuple[Scene, floa
     b.add_quad("world", (x_lo - 6.0, -half_road - 2.5, 0.0), (x_hi - x_lo + 12.0, 0, 0), (0, 2 * half_road + 5.0, 0),
                part=False, patch_size_m=(0.4, 1.5), patches_per_m2=1.0,
                photo_names=("brick", "grass", "gravel", "coins", "page", "text", "moon"))
+    house: dict[str, np.ndarray] = {}
     for side in (-1.0, 1.0):
         x = x_lo
         facade = "-y" if side > 0 else "+y"  # the face towards the street
-        while x < x_hi:
+        if row_houses:
+            x = math.floor(x_lo / ROW_HOUSE_PERIOD_M) * ROW_HOUSE_PERIOD_M
+            while x < x_hi:
+                w, depth, height = ROW_HOUSE_PERIOD_M - 0.3, 5.0, 7.0
+                centre = (x + w / 2, side * (half_road + 0.3 + depth / 2), height / 2)
+                # Both sides show the house's street face: the texture drawn for the first facade, on every facade.
+                front = b.add_box("buildings", centre, (w, depth, height), faces=(facade,),
+                                  textures={facade: house["front"]} if house else None,
+                                  patch_size_m=(0.4, 1.6), patches_per_m2=2.0)
+                house.setdefault("front", front[facade])
+                ends = b.add_box("buildings", centre, (w, depth, height), faces=("+x", "-x"),
+                                 textures={"+x": house["end"], "-x": house["end"]} if "end" in house else None,
+                                 patch_size_m=(0.6, 2.0), patches_per_m2=1.0, density=24.0)
+                house.setdefault("end", ends["+x"])
+                x += ROW_HOUSE_PERIOD_M
+        while not row_houses and x < x_hi:
             w = geo.uniform(3.0, 6.0)
             depth, height = geo.uniform(4.0, 7.0), geo.uniform(3.5, 9.0)
             y = side * (half_road + geo.uniform(0.0, 0.6) + depth / 2)
@@ -964,18 +987,18 @@ def _street_world(params: LayoutParams, x_caps: np.ndarray) -> tuple[Scene, floa
     return b.build(), half_road
 
 
-def make_street(params: LayoutParams) -> SceneLayout:
+def make_street(params: LayoutParams, row_houses: bool = False) -> SceneLayout:
     """A straight street along +x lined by textured buildings on both sides, with posts and kiosks on the pavement.
 
     Capture k covers the segment centred at x_k = (k - (N - 1) / 2) * 7 m: cameras at 1.4-2.2 m height within
     +-3.5 m of x_k, looking at the facades or along the street; neighbouring segments overlap by their views. Test
-    views stand between consecutive capture centres.
+    views stand between consecutive capture centres. ``row_houses``: the :func:`make_row_houses` layout.
     """
     params.validate()
     spacing = 7.0
     n = params.num_captures
     x_caps = (np.arange(n) - (n - 1) / 2) * spacing
-    scene, half_road = _street_world(params, x_caps)
+    scene, half_road = _street_world(params, x_caps, row_houses=row_houses)
 
     intr = Intrinsics.from_fov(params.width, params.height, params.hfov_deg)
     cams_rng = _rng(params.seed, 2)
@@ -1005,7 +1028,15 @@ def make_street(params: LayoutParams) -> SceneLayout:
 
     test_c2w = _sample_cameras(scene, "world", params.num_test_views, test_propose)
     test = Capture("test", test_c2w, intr, np.eye(4), focus="between capture centres")
-    return SceneLayout("street", params.seed, asdict(params), scene, captures, test)
+    return SceneLayout("row-houses" if row_houses else "street", params.seed, asdict(params), scene, captures, test)
+
+
+def make_row_houses(params: LayoutParams) -> SceneLayout:
+    """The street layout with repeated structure: both sides lined by one house repeated every
+    :data:`ROW_HOUSE_PERIOD_M` (the same size, facade and side walls), so every capture's facades reappear in its
+    neighbours' two houses along. Only the road, the backdrop and the randomly placed posts and kiosks tell one stretch
+    of the street from another: a free SfM can link two captures a whole number of houses apart."""
+    return make_street(params, row_houses=True)
 
 
 DRIVE_RIG_CAMERAS = 8
@@ -1155,15 +1186,16 @@ LAYOUTS: dict[str, Callable[[LayoutParams], SceneLayout]] = {
     "street": make_street,
     "drive": make_drive,
     "room": make_room,
+    "row-houses": make_row_houses,
 }
 
 
 def benchmark_params(layout: str, seed: int) -> dict:
     """The layout parameters our benchmarks' scenes use (``build_demo.py``, ``evaluate.py``): 192 x 144 images, 64
     views per capture and 12 test views; three captures on a street; the drive's 12 rig stops per block (96 views)
-    and 24 test views, 12 per gap; the room with its door (not ``symmetric``)."""
+    and 24 test views, 12 per gap; the room with its door (not ``symmetric``); the row houses as the street."""
     params = dict(seed=seed, num_views=64, num_test_views=12, width=192, height=144)
-    if layout in ("street", "drive"):
+    if layout in ("street", "drive", "row-houses"):
         params["num_captures"] = 3
     if layout == "drive":
         params.update(num_views=12 * DRIVE_RIG_CAMERAS, num_test_views=24)
@@ -1171,8 +1203,8 @@ def benchmark_params(layout: str, seed: int) -> dict:
 
 
 def make_layout(layout: str, **params) -> SceneLayout:
-    """Builds a layout by name (``"object-centric"``, ``"street"``, ``"drive"`` or ``"room"``); keyword arguments
-    are :class:`LayoutParams`."""
+    """Builds a layout by name (``"object-centric"``, ``"street"``, ``"drive"``, ``"room"`` or ``"row-houses"``);
+    keyword arguments are :class:`LayoutParams`."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
     unknown = set(params) - set(LayoutParams.__dataclass_fields__)

@@ -401,3 +401,29 @@ def test_script_reports_bad_values(tmp_path: Path):
     assert res.returncode == 2
     assert "width must be an integer" in res.stderr
     assert not (tmp_path / "x").exists()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Row houses: the street with one house repeated along it
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_row_houses_repeat_along_the_street():
+    lay = S.make_layout("row-houses", seed=0, num_views=8, num_test_views=2, width=32, height=24,
+                        texels_per_metre=8.0)  # fmt: skip
+    assert lay.layout == "row-houses" and len(lay.captures) == 3
+    buildings = lay.scene.object_index("buildings")
+    shift = np.eye(4)
+    shift[0, 3] = 2 * S.ROW_HOUSE_PERIOD_M  # the distance between neighbouring captures: two houses
+    same, differs = [], []
+    for c2w in lay.captures[1].c2w_world:
+        view = S.render(lay.scene, c2w, lay.captures[1].intrinsics, supersample=1)
+        moved = S.render(lay.scene, shift @ c2w, lay.captures[1].intrinsics, supersample=1)
+        both = (view.object_id == buildings) & (moved.object_id == buildings)
+        twin = both & ((view.depth - moved.depth).abs() < 1e-6)
+        diff = (view.rgb - moved.rgb).abs().amax(-1)
+        assert (diff[twin] < 1e-5).all()  # the same wall at the same place looks the same two houses along
+        same.append(float(twin.sum()) / max(1, int((view.object_id == buildings).sum())))
+        differs.append(float((diff > 0.1).float().mean()))
+    assert np.median(same) > 0.8  # most of what a view sees of the houses has its twin
+    assert max(differs) > 0.02  # the road and the street furniture tell the two places apart
