@@ -192,6 +192,27 @@ def test_nerf_pair_scores_and_candidates():
     assert retrieval.candidate_nerf_pairs(scores, min_score=2.0, top_k=2) == [(0, 1), (0, 2), (1, 2)]
 
 
+def test_bridging_pairs_join_the_pieces_by_their_best_untried_partners():
+    """Each piece of the registered graph asks for its best-scoring untried pairs to NeRFs outside it; nothing once
+    the graph is connected or every joining pair was tried."""
+    np.testing.assert_array_equal(retrieval.components(5, [(0, 1), (3, 4), (1, 0)]), [0, 0, 2, 3, 3])
+    rng = np.random.default_rng(0)
+    scores = rng.uniform(0.6, 0.7, size=(5, 5))
+    scores = np.triu(scores, 1) + np.triu(scores, 1).T
+    scores[0, 2] = scores[2, 0] = 0.9  # piece {0, 1} and NeRF 2 look most alike through (0, 2)
+    scores[2, 4] = scores[4, 2] = 0.95
+    linked = [(0, 1), (3, 4)]
+    tried = {(0, 1), (3, 4), (0, 3)}
+    pairs = retrieval.bridging_pairs(scores, linked, tried, per_component=1)
+    assert pairs == [(0, 2), (2, 4)]  # {0, 1}: (0, 2); {2}: (2, 4); {3, 4}: (2, 4) again
+    wider = retrieval.bridging_pairs(scores, linked, tried, per_component=3)
+    assert set(pairs) <= set(wider) and not set(wider) & tried
+    assert all(retrieval.components(5, linked)[a] != retrieval.components(5, linked)[b] for a, b in wider)
+    assert retrieval.bridging_pairs(scores, [(0, 1), (1, 2), (2, 3), (3, 4)], set(), per_component=2) == []
+    everything = {(a, b) for a in range(5) for b in range(a + 1, 5)}
+    assert retrieval.bridging_pairs(scores, linked, everything, per_component=2) == []
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # The graph mode end to end on ground-truth renderers (exact depth)
 
@@ -276,6 +297,27 @@ def test_an_unrelated_nerf_is_rejected_and_named(street, work):
                                                     r"reference capture_0 \(3 of 6 candidate pairs registered\); name "
                                                     r"overlapping pairs with --graph.neighbours a:b"):
         reg.register(renderers, graph_config(), work, QUIET)
+
+
+def test_pieces_left_by_retrieval_are_bridged(street, work):
+    """With no candidate from retrieval (``top_k`` 0, an unreachable threshold) every NeRF is a piece of its own: one
+    bridging round registers each piece's best partners and the graph solves as with retrieval; with no bridging
+    round the NeRFs stay apart and the registration says which."""
+    layout, renderers = street
+    names = [r.name for r in renderers]
+    cfg = graph_config()
+    cfg.graph.top_k, cfg.graph.min_similarity = 0, 2.0
+    record = reg.register(renderers, cfg, work, QUIET)
+    g = record["graph"]
+    assert g["bridging_rounds"] == 1 and len(g["candidates"]["pairs"]) == 3
+    for i in (1, 2):
+        err = sim3.sim3_errors(np.array(record["nerfs"][i]["T_to_reference"]), truth_in(layout, names[0], names[i]))
+        assert err.r_err_deg < 0.1 and err.t_err < 0.005 and err.s_err < 0.005, (i, err)
+    cfg.graph.bridge_rounds = 0
+    with pytest.raises(reg.RegistrationError, match=r"^capture_1, capture_2: no chain of registered pairs links "
+                                                    r"them to the reference capture_0 \(0 of 0 candidate pairs "
+                                                    r"registered\)"):
+        reg.register(renderers, cfg, work, QUIET)
 
 
 @pytest.mark.parametrize(

@@ -200,6 +200,11 @@ class GraphConfig:
     top_k: int = 3
     """... and so are each NeRF's this-many best-scoring partners, whatever their score (every NeRF gets a chance;
     bounds the pairs registered to about ``top_k`` per NeRF)."""
+    bridge_rounds: int = 8
+    """When the registered pairs leave the NeRFs in pieces: rounds in which every piece registers its next
+    ``bridge_pairs`` best-scoring pairs to NeRFs outside it (retrieval only; 0: never)."""
+    bridge_pairs: int = 2
+    """... pairs per piece and round."""
     max_cycle_rotation_deg: float = CYCLE_MAX_ROTATION_DEG
     """A cycle of three pairwise SIM(3)s whose composition rotates by more than this fails (longer cycles get
     sqrt(length / 3) times each limit); the edge in most failing cycles is dropped."""
@@ -312,6 +317,8 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
     checks += [
         (gc.score_views >= 1 and gc.top_k >= 0, "--graph.score-views must be >= 1 and --graph.top-k >= 0"),
         (math.isfinite(gc.min_similarity), "--graph.min-similarity must be finite"),
+        (gc.bridge_rounds >= 0 and gc.bridge_pairs >= 1,
+         "--graph.bridge-rounds must be >= 0 and --graph.bridge-pairs >= 1"),
         (gc.max_cycle_rotation_deg > 0 and gc.max_cycle_translation > 0 and gc.max_cycle_log_scale > 0,
          "--graph.max-cycle-rotation-deg, max-cycle-translation and max-cycle-log-scale must be > 0"),
         (gc.robust in ("huber", "cauchy"), f"unknown --graph.robust {gc.robust!r}; use huber or cauchy"),

@@ -44,7 +44,9 @@ from nerfuser_ns.registration.render_cache import (
     check_inputs,
 )
 from nerfuser_ns.registration.retrieval import (
+    bridging_pairs,
     candidate_nerf_pairs,
+    components,
     nerf_pair_scores,
 )
 from nerfuser_ns.registration.self_check import (
@@ -184,16 +186,29 @@ def _register_graph(
     pair_checks: dict[tuple[int, int], CrossRenderCheck] = {}
     # one task per pair; in this process it reports progress on the console, as a Ray task it stays quiet
     task_console = console if executor.name == "serial" else None
-    outcomes = executor.map(_register_pair, [(renderers, views, feats, similarity, a, b, intr, config, task_console)
-                                             for a, b in candidates], "pair", uses_gpu=True)  # fmt: skip
-    for (a, b), out in zip(candidates, outcomes, strict=True):
-        matches[(a, b)], hypotheses[(a, b)] = out.matches, out.hypotheses
-        if out.check is not None:
-            pair_checks[(a, b)] = out.check
-        if out.rejected is not None:
-            rejected[(a, b)] = out.rejected
-        else:
-            choice[(a, b)] = out.choice
+    batch, bridged = list(candidates), 0
+    while True:
+        outcomes = executor.map(_register_pair, [(renderers, views, feats, similarity, a, b, intr, config,
+                                                  task_console) for a, b in batch], "pair", uses_gpu=True)  # fmt: skip
+        for (a, b), out in zip(batch, outcomes, strict=True):
+            matches[(a, b)], hypotheses[(a, b)] = out.matches, out.hypotheses
+            if out.check is not None:
+                pair_checks[(a, b)] = out.check
+            if out.rejected is not None:
+                rejected[(a, b)] = out.rejected
+            else:
+                choice[(a, b)] = out.choice
+        if given or bridged == gc.bridge_rounds:
+            break
+        # registered pairs that leave the NeRFs in pieces: each piece tries its next-best partners outside it
+        batch = bridging_pairs(scores, sorted(choice), set(matches), gc.bridge_pairs)
+        if not batch:
+            break
+        bridged += 1
+        pieces = len(set(components(k, sorted(choice)).tolist()))
+        console.print(f"graph: the {len(choice)} registered pairs leave {pieces} pieces; bridging round {bridged}: "
+                      + ", ".join(f"{names[a]}/{names[b]} ({scores[a, b]:.2f})" for a, b in batch))  # fmt: skip
+        candidates = candidates + batch
     timings["pairs"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -236,6 +251,7 @@ def _register_graph(
         rejected=rejected, accepted=accepted, solved=solved, lengths=lengths,
         keypoints={names[i]: f.counts for i, f in enumerate(feats)},
     )  # fmt: skip
+    section["bridging_rounds"] = bridged
     # each task's own seconds (render and lift per NeRF, registration per pair): what a cluster runs side by side
     section["tasks_s"] = {kind: list(t) for kind, t in executor.task_seconds.items()}
     console.print(f"graph tasks ({executor.name}): " + "; ".join(

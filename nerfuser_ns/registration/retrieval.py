@@ -99,3 +99,44 @@ def candidate_nerf_pairs(scores: Float[np.ndarray, "k k"], min_score: float, top
         others = [b for b in np.argsort(-scores[a], kind="stable") if b != a][:top_k]
         pairs.update((min(a, int(b)), max(a, int(b))) for b in others)
     return sorted(pairs)
+
+
+def components(k: int, linked: Sequence[tuple[int, int]]) -> Int[np.ndarray, " k"]:
+    """Connected components of the graph on ``k`` NeRFs whose edges are ``linked``: a label per NeRF (the smallest
+    index in its component)."""
+    label = np.arange(k)
+    for _ in range(k):  # label propagation; k rounds reach across any path
+        changed = False
+        for a, b in linked:
+            low = min(label[a], label[b])
+            if label[a] != low or label[b] != low:
+                label[a] = label[b] = low
+                changed = True
+        if not changed:
+            break
+    return label
+
+
+def bridging_pairs(
+    scores: Float[np.ndarray, "k k"], linked: Sequence[tuple[int, int]], tried: set[tuple[int, int]], per_component: int
+) -> list[tuple[int, int]]:
+    """NeRF pairs (a < b) that could join a graph left in pieces: for every component of ``linked``, its
+    ``per_component`` best-scoring pairs to NeRFs outside it that are not in ``tried``, sorted. Empty when the graph is
+    connected or every joining pair was tried.
+
+    Retrieval scores rank a NeRF's true neighbours only roughly where the captures look alike everywhere (shared
+    materials, repeated facades); asking each piece for its next-best partners connects such graphs at a cost that
+    grows with the number of pieces, not with the square of the number of NeRFs.
+    """
+    k = len(scores)
+    label = components(k, linked)
+    pairs: set[tuple[int, int]] = set()
+    for c in np.unique(label):
+        inside = np.flatnonzero(label == c)
+        if len(inside) == k:
+            return []
+        options = [(float(scores[a, b]), min(a, b), max(a, b)) for a in inside for b in range(k)
+                   if label[b] != c and (min(a, b), max(a, b)) not in tried]  # fmt: skip
+        options.sort(key=lambda o: (-o[0], o[1], o[2]))
+        pairs.update((int(a), int(b)) for _, a, b in options[:per_component])
+    return sorted(pairs)
