@@ -59,7 +59,7 @@ class BaselineError(ValueError):
 
 
 def _o3d():
-    import open3d as o3d
+    import open3d as o3d  # here, not at the top: Open3D is the optional `baselines` extra
 
     return o3d
 

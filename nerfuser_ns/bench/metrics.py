@@ -41,6 +41,7 @@ def image_metrics(
     if lpips:
         runtime.install()
         if runtime.lpips_weights_available():
+            # here, not at the top: LPIPS is optional and its module is reached only when its weights are on disk
             from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
             metric = LearnedPerceptualImagePatchSimilarity(normalize=True)

@@ -329,7 +329,7 @@ def load_photos() -> tuple[np.ndarray, ...]:
 
     Only images bundled inside the scikit-image package are used: this never downloads anything.
     """
-    import skimage.data
+    import skimage.data  # here, not at the top: its import loads the whole package; only textures need it
 
     photos = []
     for name in PHOTO_NAMES:
