@@ -1,0 +1,86 @@
+"""The cross-render self-check (:mod:`nerfuser_ns.registration.self_check`): NCC, a wrong transform rejected on the
+object-centric pair, a wrong estimate (or refinement) failing the command with one line, and the failure messages
+per mode and pose source."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from registration_helpers import WRONG, assert_one_line_error, perturb_second_estimate, run_cli, small_config
+
+from nerfuser_ns import registration as reg
+from nerfuser_ns import sim3
+from nerfuser_ns.registration import pipeline as reg_pipeline
+
+
+def test_ncc_basics():
+    rng = np.random.default_rng(0)
+    a = rng.random((32, 48, 3)).astype(np.float32)
+    assert reg.ncc(a, a) == pytest.approx(1.0)
+    assert reg.ncc(a, 0.5 * a + 0.2) == pytest.approx(1.0)  # gain and offset invariant
+    assert reg.ncc(a, 1 - a) == pytest.approx(-1.0)
+    assert abs(reg.ncc(a, rng.random((32, 48, 3)).astype(np.float32))) < 0.1
+    assert np.isnan(reg.ncc(a, a, mask=np.zeros((32, 48), bool)))
+
+
+def test_self_check_rejects_a_wrong_transform(oc_layout, oc_renderers, oc_record, work):
+    config = small_config()
+    views = [reg.render_views_cached(r, config.sampling, work / "renders") for r in oc_renderers]
+    assert all(v.reused for v in views)
+    T = np.stack([np.asarray(n["T_to_reference"]) for n in oc_record["nerfs"]])
+    intr = config.sampling.intrinsics()
+    good = reg.cross_render_check(oc_renderers, views, T, [(0, 1)], intr, config)[0]
+    wrong = T.copy()
+    wrong[1] = sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 0.0, 25.0])), [0.1, 0.0, 0.0]) @ T[1]
+    bad = reg.cross_render_check(oc_renderers, views, wrong, [(0, 1)], intr, config)[0]
+    assert good.score > 0.9
+    assert bad.score < config.ncc_threshold
+
+
+@pytest.mark.parametrize("refine", [False, True])
+def test_register_fails_when_the_estimate_is_wrong(
+    oc_renderers, oc_record, work, monkeypatch, tmp_path, capsys, refine
+):
+    if refine:  # the refinement would correct a wrong start (next test): break its output instead
+        real_refine = reg.refine_transforms
+
+        def perturbed_refine(*args, **kw):
+            T, summary = real_refine(*args, **kw)
+            T = T.copy()
+            T[1] = WRONG @ T[1]
+            return T, summary
+
+        monkeypatch.setattr(reg_pipeline, "refine_transforms", perturbed_refine)
+    else:
+        perturb_second_estimate(monkeypatch)
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, refine=refine)
+    assert_one_line_error(rc, out, err, "capture_a and capture_b", "self-check failed")
+    rejected = json.loads((work / "rejected_registration.json").read_text())
+    assert rejected["pairs"][0]["self_check"]["passed"] is False
+
+
+@pytest.mark.parametrize("mode", ["sfm", "known-geometry", "graph"])
+def test_a_failed_self_check_names_the_likely_cause_of_its_mode(mode):
+    from nerfuser_ns.registration.self_check import CrossRenderCheck, failure_message
+
+    config = reg.RegistrationConfig(mode=mode)
+    good, bad = CrossRenderCheck(0, 1, 0.9, 0.8, 4), CrossRenderCheck(1, 2, 0.1, 0.2, 4)
+    assert failure_message([good], ["a", "b", "c"], config) is None
+    message = failure_message([good, bad], ["a", "b", "c"], config)
+    assert message.startswith("b and c: cross-render self-check failed (NCC 0.10 < ")  # the worse direction
+    assert ("SfM" in message) == (mode == "sfm") and ("pose graph" in message) == (mode == "graph")
+
+
+@pytest.mark.parametrize("source", ["hemisphere", "training", "both"])
+def test_a_failed_self_check_suggests_what_fits_its_pose_source(source):
+    """The advice names options of the poses that failed: no hemisphere radius for training poses, no training
+    poses for a run that already rendered them."""
+    from nerfuser_ns.registration.self_check import CrossRenderCheck, failure_message
+
+    config = reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(source=source))
+    message = failure_message([CrossRenderCheck(0, 1, 0.1, 0.2, 4)], ["a", "b"], config)
+    assert ("--sampling.radius" in message) == (source == "hemisphere")
+    assert ("--sampling.max-training-poses" in message) == (source != "hemisphere")
+    assert ("--mode known-geometry" in message) == (source != "hemisphere")
