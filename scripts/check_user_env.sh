@@ -13,14 +13,17 @@
 #
 #   scripts/check_user_env.sh                      # build or reuse the environment, install, test
 #   PYTEST_ARGS="-x" scripts/check_user_env.sh     # extra pytest arguments
-#   TESTS="tests/test_registration.py" scripts/check_user_env.sh
+#   TESTS="tests/registration/test_pipeline.py" scripts/check_user_env.sh
 #
 # Needs the package registry only while installing; the tests themselves run offline.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 TORCH_PINS=(torch==2.1.2 torchvision==0.16.2 "numpy<2")
 NERFSTUDIO_PIN="nerfstudio==1.1.5"
-TESTS="${TESTS:-tests/test_runtime.py tests/test_registration.py tests/test_model.py}"
+REGISTRATION_TESTS="tests/registration/test_pipeline.py tests/registration/test_record.py tests/registration/test_refine.py
+tests/registration/test_render_cache.py tests/registration/test_self_check.py tests/registration/test_sfm.py
+tests/bench/test_ground_truth.py"
+TESTS="${TESTS:-tests/test_runtime.py $(echo $REGISTRATION_TESTS) tests/test_model.py}"
 VENV="${NERFUSER_USERENV:-$HOME/.cache/nerfuser_ns/userenv-py310-torch21}"
 MARK="$VENV/.nerfuser-userenv-complete"
 # The machine's own pip find-links carry a torch wheel of ours (cp311, CPU); a user has only PyPI.
