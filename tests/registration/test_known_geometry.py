@@ -169,6 +169,27 @@ def test_sim3_hypotheses_finds_both_links_of_a_repeated_structure():
     assert len(kg.sim3_hypotheses(pb, pa, 1e-3 * sim3.decompose_sim3(T_true)[2], strict)) == 1
 
 
+def test_the_true_link_of_a_row_of_houses_is_among_the_hypotheses():
+    """A row of identical houses: most matches link a house to one a whole number of houses along (four twins, each
+    with more inliers than the truth, which only the unique road and the right houses support). The defaults keep the
+    true link among the hypotheses for the cross-render check to choose (a cap of 3 would not)."""
+    rng = np.random.default_rng(5)
+    T_true = sim3.random_sim3(rng)
+    period = np.array([3.5, 0.0, 0.0])
+    pa, pb = [], []
+    for shift, count in ((1, 600), (-1, 550), (2, 500), (-2, 450), (0, 160)):  # facade matches, by houses along
+        b = rng.uniform([-10, 4, 0], [10, 9, 7], size=(count, 3))
+        pb.append(b)
+        pa.append(sim3.transform_points(T_true, b + shift * period))
+    pb, pa = np.concatenate(pb), np.concatenate(pa)
+    hyps = kg.sim3_hypotheses(pb, pa, max_error=1e-3 * sim3.decompose_sim3(T_true)[2],
+                              cfg=reg.RegistrationConfig().known_geometry)  # fmt: skip
+    errors = [sim3.sim3_errors(h.T, T_true) for h in hyps]
+    assert len(hyps) == 5 and [len(h.inliers) for h in hyps] == [600, 550, 500, 450, 160]
+    assert errors[4].r_err_deg < 1e-6 and errors[4].t_err < 1e-6  # the truth, last by inliers
+    assert all(e.t_err > 1.0 for e in errors[:4])  # the twins: houses along
+
+
 def test_joint_solve_recovers_three_frames_from_a_perturbed_start():
     rng = np.random.default_rng(3)
     T = np.stack([np.eye(4), sim3.random_sim3(rng), sim3.random_sim3(rng)])  # NeRF -> reference
