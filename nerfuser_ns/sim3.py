@@ -312,9 +312,12 @@ def geometric_median(
     x = np.asarray(x, dtype=np.float64)
     y = np.median(x, axis=0) if init is None else np.asarray(init, dtype=np.float64)
     spread = float(np.max(np.abs(x - y))) if x.size else 0.0
-    eps = 1e-15 * max(spread, 1e-300)
+    if spread == 0.0:  # every point at the start (exact data): that is the median, and 1 / 0 must not be formed
+        return y
+    eps = 1e-15 * spread
     for _ in range(max_iters):
-        w = 1.0 / np.maximum(np.linalg.norm(x - y, axis=-1), eps)
+        d = np.maximum(np.linalg.norm(x - y, axis=-1), eps)
+        w = d.min() / d  # 1 / d scaled into (0, 1]: the same iterate, and no overflow for tiny distances
         y_new = (w[:, None] * x).sum(axis=0) / w.sum()
         step = np.linalg.norm(y_new - y)
         y = y_new

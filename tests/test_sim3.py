@@ -207,6 +207,16 @@ def test_rotation_angle_and_so3_exp():
     np.testing.assert_allclose(a, b, atol=1e-11)
 
 
+def test_geometric_median_of_identical_or_nearly_identical_points_is_finite():
+    """Exact data gives coinciding points (every camera's bridge the same): the median is that point, never NaN; a
+    spread of 1e-300 must not overflow the weights either."""
+    p = np.array([0.3, -1.2, 2.0])
+    np.testing.assert_array_equal(geometric_median(np.tile(p, (7, 1))), p)
+    tiny = np.tile(p, (5, 1)) + 1e-300 * np.arange(5)[:, None]
+    assert np.all(np.isfinite(geometric_median(tiny)))
+    np.testing.assert_allclose(geometric_median(tiny), p, atol=1e-290)
+
+
 def test_geometric_median_robust():
     rng = _rng(8)
     inliers = np.tile([1.0, -2.0, 3.0], (14, 1))
