@@ -45,6 +45,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
+from nerfstudio.viewer.viewer_elements import ViewerDropdown, ViewerNumber
 from torch import Tensor
 from torch.nn import Parameter
 from torchmetrics.functional import structural_similarity_index_measure
@@ -273,11 +274,6 @@ class NerfuserModel(Model):
                               lambda self, v: self.set_blend(reference_nerf=v))  # fmt: skip
 
     def _add_viewer_controls(self) -> None:
-        try:
-            from nerfstudio.viewer.viewer_elements import ViewerDropdown, ViewerNumber
-        except Exception:  # noqa: BLE001 - the viewer is optional
-            return
-
         def set_method(element) -> None:  # noqa: ANN001
             self.set_blend(method=element.value)
 

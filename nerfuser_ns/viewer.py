@@ -11,7 +11,8 @@
   long, i.e. scaled by its registered scale, with a sphere in its share colour), the cameras the registration
   rendered from (read from the registration file's ``render_folder``, in each NeRF's colour, grey where the view was
   left out of the SfM) and the test cameras;
-* nerfstudio's training controls hidden (Pause/Resume Training, Train Speed, Train Util: nothing trains);
+* nerfstudio's training controls hidden (Pause/Resume Training, Train Speed, Train Util, the stats line's step:
+  nothing trains);
 * CPU-friendly render settings (a small maximum resolution, a warmed-up renderer, low-resolution frames sized to the
   renderer's measured speed rather than nerfstudio's 30 fps guess) and an offline page.
 
@@ -325,14 +326,24 @@ class NerfuserSceneControl(ViewerControl):
 
     @staticmethod
     def _hide_training_controls(viewer: Viewer) -> None:
-        """nerfstudio's training controls: nothing trains in a fused run. (The control panel has no public accessor
-        for its Train Speed and Train Util elements; hiding them is ViewerElement's own set_hidden.)"""
+        """nerfstudio's training controls and the stats line's step: nothing trains in a fused run. (The control panel
+        has no public accessor for its Train Speed and Train Util elements; hiding them is ViewerElement's own
+        set_hidden.)"""
         for handle in (viewer.pause_train, viewer.resume_train):
             handle.visible = False
         for name in ("_train_speed", "_train_util"):
             element = getattr(viewer.control_panel, name, None)
             if element is not None:
                 element.set_hidden(True)
+        # the stats line without its training step: nerfstudio rebuilds it through make_stats_markdown
+        shown = {"res": "0x0px"}
+
+        def resolution_only(step: int | None, res: str | None) -> str:
+            shown["res"] = res if res is not None else shown["res"]
+            return f"Resolution: {shown['res']}"
+
+        viewer.make_stats_markdown = resolution_only
+        viewer.stats_markdown.content = resolution_only(None, None)
 
     def _rerender(self) -> None:
         """What nerfstudio does after a change of one of its elements: every browser renders the view again."""

@@ -391,8 +391,10 @@ def test_page_shows_the_blended_render_low_resolution_first(session, tmp_path):
     assert text.index("NeRFuser blend method") < text.index("Hide Train Cams") < text.index("Render Options")
     for label in ("NeRFuser reference NeRF", "NeRFuser gamma", "NeRFuser tau (0: off)", "Scene overlays"):
         assert text.index(label) < text.index("Hide Train Cams"), label
-    for hidden in ("Pause Training", "Resume Training", "Train Speed", "Train Util", "Custom Elements", "NeRF frames"):
+    for hidden in ("Pause Training", "Resume Training", "Train Speed", "Train Util", "Custom Elements", "NeRF frames",
+                   "Step:"):  # fmt: skip
         assert hidden not in text, hidden
+    assert viewer.stats_markdown.content.startswith("Resolution: ") and "0x0px" not in viewer.stats_markdown.content
 
     # hide what is still drawn over the render: nerfstudio's test-image frustums
     running.viewer.set_camera_visibility(False)
@@ -562,7 +564,7 @@ def test_ns_viewer_shows_a_fused_run(fused_run, browser):
         for label in ("NeRFuser blend method", "NeRFuser gamma", "NeRFuser tau", "NeRFuser reference NeRF",
                       "Scene overlays"):  # fmt: skip
             assert label in text and text.index(label) < text.index("Render Options"), label
-        for label in ("NeRF frames (2)", "Pause Training", "Train Speed", "Train Util", "Custom Elements"):
+        for label in ("NeRF frames (2)", "Pause Training", "Train Speed", "Train Util", "Custom Elements", "Step:"):
             assert label not in text, label
         shot = canvas_image(browser)
         assert shot.astype(np.float32).std() / 255 > 0.08  # an image, not the empty dark scene
