@@ -12,6 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 from jaxtyping import Float, Int
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from sklearn.cluster import KMeans
 
 MAX_TRAINING_DESCRIPTORS = 10000
@@ -104,17 +106,13 @@ def candidate_nerf_pairs(scores: Float[np.ndarray, "k k"], min_score: float, top
 def components(k: int, linked: Sequence[tuple[int, int]]) -> Int[np.ndarray, " k"]:
     """Connected components of the graph on ``k`` NeRFs whose edges are ``linked``: a label per NeRF (the smallest
     index in its component)."""
-    label = np.arange(k)
-    for _ in range(k):  # label propagation; k rounds reach across any path
-        changed = False
-        for a, b in linked:
-            low = min(label[a], label[b])
-            if label[a] != low or label[b] != low:
-                label[a] = label[b] = low
-                changed = True
-        if not changed:
-            break
-    return label
+    edges = np.asarray(linked, dtype=int).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(k, k))
+    _, label = connected_components(graph, directed=False)
+    first = {}
+    for i, c in enumerate(label):
+        first.setdefault(c, i)
+    return np.array([first[c] for c in label])
 
 
 def bridging_pairs(
