@@ -969,15 +969,16 @@ def _street_world(params: LayoutParams, x_caps: np.ndarray, row_houses: bool = F
                                  patch_size_m=(0.6, 2.0), patches_per_m2=1.0, density=24.0)
                 house.setdefault("end", ends["+x"])
                 x += ROW_HOUSE_PERIOD_M
-        while not row_houses and x < x_hi:
-            w = geo.uniform(3.0, 6.0)
-            depth, height = geo.uniform(4.0, 7.0), geo.uniform(3.5, 9.0)
-            y = side * (half_road + geo.uniform(0.0, 0.6) + depth / 2)
-            b.add_box("buildings", (x + w / 2, y, height / 2), (w, depth, height), faces=(facade,),
-                      patch_size_m=(0.4, 1.6), patches_per_m2=2.0)
-            b.add_box("buildings", (x + w / 2, y, height / 2), (w, depth, height), faces=("+x", "-x"),
-                      patch_size_m=(0.6, 2.0), patches_per_m2=1.0, density=24.0)
-            x += w + geo.uniform(0.0, 1.2)
+        else:
+            while x < x_hi:
+                w = geo.uniform(3.0, 6.0)
+                depth, height = geo.uniform(4.0, 7.0), geo.uniform(3.5, 9.0)
+                y = side * (half_road + geo.uniform(0.0, 0.6) + depth / 2)
+                b.add_box("buildings", (x + w / 2, y, height / 2), (w, depth, height), faces=(facade,),
+                          patch_size_m=(0.4, 1.6), patches_per_m2=2.0)
+                b.add_box("buildings", (x + w / 2, y, height / 2), (w, depth, height), faces=("+x", "-x"),
+                          patch_size_m=(0.6, 2.0), patches_per_m2=1.0, density=24.0)
+                x += w + geo.uniform(0.0, 1.2)
         for xp in np.arange(x_lo + 2.0, x_hi - 2.0, 5.0) + geo.uniform(-1, 1):
             if geo.random() < 0.5:
                 b.add_cylinder("street_furniture", (xp, side * (half_road - 0.6), 0.0), 0.12, 3.0)
