@@ -366,6 +366,18 @@ class NerfuserSceneControl(ViewerControl):
         element.cb_hook = locked_hook
         element.install(self.viser_server)
 
+    def _sync_controls(self) -> None:
+        """The controls' initial values from the model's settings now (they may have changed since the model made
+        them, e.g. ``ns-nerfuser-view --gamma``). Before installation a value is only a default: no callback runs."""
+        model, controls = self._model, self.controls
+        values = {"blend_method": model.blend_method, "gamma": float(model.gamma), "tau": float(model.tau or 0.0)}
+        if "reference_nerf" in controls:
+            options = list(controls["reference_nerf"].options)
+            values["reference_nerf"] = options[model.reference_nerf % len(options)]
+        for name, value in values.items():
+            if name in controls:
+                controls[name].value = value
+
     def _add_panel(self, viewer: Viewer, scene: FusedScene) -> None:
         server = viewer.viser_server
         n_reg = sum(len(n.registration_cameras) for n in scene.nerfs if n.registration_cameras is not None)
@@ -388,6 +400,7 @@ class NerfuserSceneControl(ViewerControl):
         header = [viewer.pause_train, viewer.resume_train, viewer.hide_images, viewer.show_images]
         self.folder = server.gui.add_folder("NeRFuser", order=min(h.order for h in header) - 1.0)
         with self.folder:
+            self._sync_controls()
             for element in self.controls.values():
                 self._install(element)
             self.overlays = server.gui.add_checkbox(

@@ -95,7 +95,7 @@ def run_case(renderers, nerf_to_world, mode: str, count: int, work_dir: Path, re
     config = RegistrationConfig(mode=mode, sampling=PoseSamplingConfig(max_training_poses=count), refine=refine)
     t = time.perf_counter()
     try:
-        record = registration.register(renderers, config, work_dir, Console(quiet=True))
+        record = registration.register(renderers, config, work_dir, Console(quiet=True)).to_record()
     except RegistrationError as e:
         return {"status": "error", "error": str(e).splitlines()[0], "seconds": round(time.perf_counter() - t, 1)}
     ref = record["reference"]["index"]

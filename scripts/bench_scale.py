@@ -288,7 +288,7 @@ def run_case(cfg: BenchScale, n: int, case: str, work: Path) -> dict:
     status, error, record = "ok", None, None
     t = time.perf_counter()
     try:
-        record = registration.register(renderers, config, work, Console(quiet=not cfg.verbose))
+        record = registration.register(renderers, config, work, Console(quiet=not cfg.verbose)).to_record()
     except RegistrationFailed as e:  # the self-check rejected the solution: still scored
         status, error, record = "self-check failed", str(e).splitlines()[0], e.record
     except RegistrationError as e:

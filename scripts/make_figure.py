@@ -21,6 +21,7 @@ from PIL import Image  # noqa: E402
 
 from nerfuser_ns.blend_settings import SHARE_PALETTE  # noqa: E402
 from nerfuser_ns.files import atomic_path  # noqa: E402
+from nerfuser_ns.registration.record import render_folders  # noqa: E402
 from nerfuser_ns.spec import read_registered_nerfs  # noqa: E402
 from nerfuser_ns.viewer import read_render_folder, short_name  # noqa: E402
 
@@ -48,8 +49,8 @@ def main(cfg: MakeFigure) -> None:
     for method, label in (("idw-sample", "IDW-Sample, registered by us"), ("nearest", "Nearest")):
         image = Image.open(cfg.demo_dir / "fused" / "estimated" / method / f"test_{cfg.view:03d}.png")
         panels.append((f"{label}\nPSNR {psnr[method]['psnr']:.2f} dB over the test views", image))
-    registration = json.loads((cfg.demo_dir / "registration.json").read_text())
     entries = read_registered_nerfs(cfg.demo_dir / "registration.json", check_runs=False)
+    folders = render_folders(cfg.demo_dir / "registration.json")
 
     fig = plt.figure(figsize=(13, 3.5), dpi=110)
     for k, (title, image) in enumerate(panels):
@@ -58,8 +59,8 @@ def main(cfg: MakeFigure) -> None:
         ax.set_title(title, fontsize=9)
         ax.axis("off")
     ax = fig.add_subplot(1, 4, 4, projection="3d")
-    for i, (entry, nerf) in enumerate(zip(entries, registration["nerfs"], strict=True)):
-        cams = read_render_folder(Path(nerf["render_folder"]), entry.nerf_to_common)
+    for i, (entry, where) in enumerate(zip(entries, folders, strict=True)):
+        cams = read_render_folder(where.folder, entry.nerf_to_common)
         colour = SHARE_PALETTE[i % len(SHARE_PALETTE)].numpy()
         centres = cams.c2w[:, :3, 3]
         ax.scatter(*centres.T, s=6, color=colour, label=short_name(entry.name))

@@ -35,7 +35,7 @@ from nerfuser_ns import registration, sim3
 from nerfuser_ns.blend_settings import SHARE_PALETTE as _PALETTE
 from nerfuser_ns.data import PlaceholderImageDataset
 from nerfuser_ns.renderers import RenderBatch
-from nerfuser_ns.scripts.view import check_bind, load_fused_pipeline, start_viewer
+from nerfuser_ns.scripts.view import ViewCommand, check_bind, load_fused_pipeline, start_viewer
 from nerfuser_ns.spec import write_fusion_spec
 from nerfuser_ns.viewer import LOW_RES_SECONDS, VISER_SCALE, ViewerSetupError
 
@@ -601,9 +601,15 @@ def _get(url: str) -> str | None:
 def test_viewer_opens_a_registration_file_without_test_images(fusion_spec):
     """The common case of a user fusing their own runs: no test images. nerfstudio's viewer reads every attribute
     of the pipeline; the datamanager's eval loader must not raise there."""
-    running = start_viewer(fusion_spec.parent / "registration.json", host="127.0.0.1", port=free_port())
+    running = start_viewer(fusion_spec.parent / "registration.json", host="127.0.0.1", port=free_port(),
+                           blend={"method": "nearest", "gamma": 7.0, "tau": None})  # fmt: skip
     try:
         assert running.viewer is not None and _get(running.url) is not None
+        # the initial settings (ns-nerfuser-view --blend-method/--gamma/--tau) reach the model and its panel
+        model = running.pipeline.model
+        assert (model.blend_method, model.gamma, model.tau) == ("nearest", 7.0, None)
+        controls = model.viewer_scene.controls
+        assert (controls["blend_method"].value, controls["gamma"].value, controls["tau"].value) == ("nearest", 7.0, 0.0)
         datamanager = running.pipeline.datamanager
         # no test images: no eval dataset, or (when a run's dataset is readable) its training cameras without images
         assert datamanager.eval_dataset is None or isinstance(datamanager.eval_dataset, PlaceholderImageDataset)
@@ -639,6 +645,11 @@ def test_bad_input_is_one_line(tmp_path):
         load_fused_pipeline(RUNS[0])
     with pytest.raises(ViewerSetupError, match="nowhere.json: no such file or folder"):
         load_fused_pipeline(tmp_path / "nowhere.json")
+    # blend options are checked before anything loads (the spec's runs do not even exist here)
+    with pytest.raises(ViewerSetupError, match="gamma must be >= 0, got -1.0"):
+        ViewCommand(path=spec, gamma=-1.0).main()
+    with pytest.raises(ViewerSetupError, match="tau must be >= 1"):
+        ViewCommand(path=spec, tau=0.5).main()
 
 
 def test_an_impossible_bind_fails_at_once(fusion_spec, tmp_path):

@@ -27,7 +27,7 @@ from rich.table import Table
 from rich.text import Text
 
 from nerfuser_ns import runs, sim3
-from nerfuser_ns.registration import RegistrationError, read_registration, write_registration
+from nerfuser_ns.registration import RegistrationError, RegistrationResult, read_registration, write_registration
 from nerfuser_ns.spec import FusionSpecError, validate_sim3
 
 FAILURE_RULE = "NaN, r_err > 5 deg, t_err > 0.2 (reference units) or s_err = |log s| > 0.1"
@@ -63,8 +63,11 @@ def reference_index(record: dict) -> int:
     return identity[0]
 
 
-def score_registration(record: dict, gt_nerf_to_world: Sequence[np.ndarray]) -> dict:
-    """A copy of ``record`` with ``ground_truth`` errors per NeRF and overall (``failure``: any NeRF failed)."""
+def score_registration(record: RegistrationResult | dict, gt_nerf_to_world: Sequence[np.ndarray]) -> dict:
+    """The record of a registration (the typed result or its record) with ``ground_truth`` errors per NeRF and overall
+    (``failure``: any NeRF failed); the input is left as it was."""
+    if isinstance(record, RegistrationResult):
+        record = record.to_record()
     nerfs = record["nerfs"]
     if len(gt_nerf_to_world) != len(nerfs):
         raise RegistrationError(f"ground truth given for {len(gt_nerf_to_world)} NeRFs, the registration has "

@@ -10,7 +10,7 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from rich.console import Console
@@ -18,6 +18,9 @@ from rich.console import Console
 from nerfuser_ns.cameras import Intrinsics, intrinsics_from_fov
 from nerfuser_ns.registration.pose_graph import CYCLE_MAX_LOG_SCALE, CYCLE_MAX_ROTATION_DEG, CYCLE_MAX_TRANSLATION
 from nerfuser_ns.sampling import sample_hemisphere_poses
+
+if TYPE_CHECKING:  # record.py imports this module
+    from nerfuser_ns.registration.record import RegistrationResult
 
 FORMAT_VERSION = 1
 CONSOLE = Console(width=120)
@@ -49,11 +52,16 @@ class RegistrationError(ValueError):
 
 
 class RegistrationFailed(RegistrationError):
-    """The self-check rejected the solution; ``record`` holds it (with the scores) for inspection."""
+    """The self-check rejected the solution; ``result`` holds it (with the scores) for inspection."""
 
-    def __init__(self, message: str, record: dict):
+    def __init__(self, message: str, result: RegistrationResult):
         super().__init__(message)
-        self.record = record
+        self.result = result
+
+    @property
+    def record(self) -> dict:
+        """The rejected solution as a registration record (what ``write_registration`` stores)."""
+        return self.result.to_record()
 
 
 # ---------------------------------------------------------------------------------------------------------------------

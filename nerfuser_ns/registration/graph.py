@@ -39,6 +39,7 @@ from nerfuser_ns.registration.pairwise import (
     views_matched,
 )
 from nerfuser_ns.registration.pose_graph import Edge, PoseGraphError, require_gtsam, solve_pose_graph
+from nerfuser_ns.registration.record import RegistrationResult
 from nerfuser_ns.registration.render_cache import (
     ViewSet,
     check_inputs,
@@ -130,8 +131,8 @@ def _parse_neighbours(items: Sequence[str], names: Sequence[str]) -> list[tuple[
 
 def register_graph(
     renderers: Sequence[Renderer], config: RegistrationConfig, work_dir: Path | str, console: Console
-) -> dict:
-    """One registration of many NeRFs as a SIM(3) pose graph (mode ``graph``, ours); returns the record.
+) -> RegistrationResult:
+    """One registration of many NeRFs as a SIM(3) pose graph (mode ``graph``, ours); returns the result.
 
     Renders with depth and lifts keypoints as the known-geometry mode, finds candidate NeRF pairs from the renders'
     visual words (or takes ``--graph.neighbours``), registers each candidate pair on known geometry (an edge, or a
@@ -257,13 +258,12 @@ def _register_graph(
     console.print(f"graph tasks ({executor.name}): " + "; ".join(
         f"{len(t)} {kind}, median {sorted(t)[len(t) // 2]:.1f} s, max {max(t):.1f} s"
         for kind, t in executor.task_seconds.items() if t))  # fmt: skip
-    record = build_known_geometry_result(
+    result = build_known_geometry_result(
         renderers=renderers, views=views, T_to_ref=T_to_ref, T_initial=solved.T_initial,
         views_matched=views_matched(feats, matches, kept, k), overlap=overlap, checks=checks, config=config,
         timings=timings, known_geometry=None, graph=section,
     )  # fmt: skip
-    record = record.to_record()
     failure = failure_message(checks, names, config)
     if failure is not None:
-        raise RegistrationFailed(failure, record)
-    return record
+        raise RegistrationFailed(failure, result)
+    return result

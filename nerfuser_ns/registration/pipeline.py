@@ -52,7 +52,7 @@ from nerfuser_ns.registration.pairwise import (
     render_and_lift,
     views_matched,
 )
-from nerfuser_ns.registration.record import work_dir_for, write_registration
+from nerfuser_ns.registration.record import RegistrationResult, work_dir_for, write_registration
 from nerfuser_ns.registration.refine import refine_on_matches, refine_transforms
 from nerfuser_ns.registration.render_cache import (
     check_inputs,
@@ -68,6 +68,7 @@ from nerfuser_ns.registration.self_check import (
 )
 from nerfuser_ns.registration.sfm import check_registered_views, run_sfm
 from nerfuser_ns.renderers import NerfstudioRenderer, Renderer
+from nerfuser_ns.runs import default_device
 
 
 @dataclass
@@ -139,11 +140,13 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
 
 def register(
     renderers: Sequence[Renderer],
-    config: RegistrationConfig | None = None,
-    work_dir: Path | str = Path("nerfuser_register_work"),
+    config: RegistrationConfig | None,
+    work_dir: Path | str,
     console: Console = CONSOLE,
-) -> dict:
-    """Register N >= 2 renderers; returns the registration record (what :func:`write_registration` stores).
+) -> RegistrationResult:
+    """Register N >= 2 renderers; returns the typed result (``.to_record()`` is what :func:`write_registration`
+    stores). ``config`` None: the defaults. ``work_dir`` holds the renders and SfM files (reused by later calls with the
+    same inputs).
 
     With ``sampling.source="auto"`` (the default) the pose sources of :func:`resolve_sampling` are tried in order until
     one registers; each choice and each fallback is printed. Raises :class:`RegistrationError` (one line, naming the
@@ -161,7 +164,7 @@ def register(
         console.print(f"pose sampling: [bold]{sc.source}[/] ({choice.reason}), renders {sc.width}x{sc.height} at "
                       f"{sc.fov_deg:.1f} deg")  # fmt: skip
         try:
-            record = register_once(renderers, choice.config, work_dir, console)
+            result = register_once(renderers, choice.config, work_dir, console)
         except RegistrationError as e:
             if n + 1 == len(choices):
                 raise
@@ -169,9 +172,9 @@ def register(
             tried.append({"source": sc.source, "error": reason})
             console.print(f"[yellow]{sc.source} poses did not register: {reason}[/]")
             continue
-        record["sampling_choice"] = {"requested": config.sampling.source, "source": sc.source,
-                                     "reason": choice.reason, "tried_before": tried}  # fmt: skip
-        return record
+        result.sampling_choice = {"requested": config.sampling.source, "source": sc.source,
+                                  "reason": choice.reason, "tried_before": tried}  # fmt: skip
+        return result
     raise AssertionError("unreachable")  # pragma: no cover
 
 
@@ -180,10 +183,10 @@ def register_once(
     config: RegistrationConfig,
     work_dir: Path | str,
     console: Console,
-) -> dict:
-    """One registration with concrete pose-sampling settings (see :func:`register`); returns the record.
+) -> RegistrationResult:
+    """One registration with concrete pose-sampling settings (see :func:`register`); returns the result.
 
-    Raises :class:`RegistrationFailed` (with the record) when the self-check rejects the solution.
+    Raises :class:`RegistrationFailed` (with the result) when the self-check rejects the solution.
     """
     if config.mode == "known-geometry":
         return register_known_geometry(renderers, config, work_dir, console)
@@ -227,14 +230,14 @@ def register_once(
     timings["self_check"] = time.perf_counter() - t0
 
     # 6. The record; fail clearly when the self-check says the SfM merged the wrong things.
-    record = build_result(
+    result = build_result(
         renderers=renderers, views=views, sfm=sfm, estimates=estimates, T_to_ref=T_to_ref, T_to_C=T_to_C,
         refinement=refinement, overlap=overlap, checks=checks, config=config, intrinsics=intr, timings=timings,
-    ).to_record()
+    )
     failure = failure_message(checks, [r.name for r in renderers], config)
     if failure is not None:
-        raise RegistrationFailed(failure, record)
-    return record
+        raise RegistrationFailed(failure, result)
+    return result
 
 
 MIN_DEPTH_SIGMA = 1e-4
@@ -243,8 +246,8 @@ MIN_DEPTH_SIGMA = 1e-4
 
 def register_known_geometry(
     renderers: Sequence[Renderer], config: RegistrationConfig, work_dir: Path | str, console: Console
-) -> dict:
-    """One registration on known geometry (mode ``known-geometry``, ours); returns the record.
+) -> RegistrationResult:
+    """One registration on known geometry (mode ``known-geometry``, ours); returns the result.
 
     Raises :class:`RegistrationError` (one line) when a NeRF has too few reliable keypoints, a NeRF matches no other,
     or two hypotheses are equally good; :class:`RegistrationFailed` (with the record) when the self-check rejects the
@@ -324,15 +327,15 @@ def register_known_geometry(
         "dropped_pairs": dropped,
         "joint_solve": solve,
     }  # fmt: skip
-    record = build_known_geometry_result(
+    result = build_known_geometry_result(
         renderers=renderers, views=views, T_to_ref=T_to_ref, T_initial=T_initial, views_matched=matched,
         overlap=overlap, checks=checks, config=config, timings=timings, known_geometry=summary,
         refinement=refinement,
-    ).to_record()
+    )
     failure = failure_message(checks, names, config)
     if failure is not None:
-        raise RegistrationFailed(failure, record)
-    return record
+        raise RegistrationFailed(failure, result)
+    return result
 
 
 def register_runs(
@@ -341,17 +344,19 @@ def register_runs(
     config: RegistrationConfig | None = None,
     work_dir: Path | str | None = None,
     names: Sequence[str] | None = None,
-    device: str = "cpu",
+    device: str | None = None,
     console: Console = CONSOLE,
     data_overrides: Sequence[Path | None] | None = None,
-) -> dict:
+) -> RegistrationResult:
     """Register trained nerfstudio runs from their config.yml files and write the registration file at ``output``.
 
     ``work_dir`` defaults to ``<output>_work`` (renders and SfM files, reused by later calls). ``data_overrides[i]``
     is run i's dataset folder where its config's path no longer holds it (training poses are read from it). Raises
-    :class:`RegistrationError` or ``runs.RunLoadError`` (one line) on bad input; nothing is written then.
+    :class:`RegistrationError` or ``runs.RunLoadError`` (one line) on bad input; nothing is written then. ``device``
+    defaults to cuda when torch sees a GPU, else cpu.
     """
     output = Path(output)
+    device = device or default_device()
     if names is not None and len(names) != len(config_paths):
         raise RegistrationError(f"{len(names)} names for {len(config_paths)} runs")
     if data_overrides is not None and len(data_overrides) != len(config_paths):
@@ -364,6 +369,6 @@ def register_runs(
         for i, c in enumerate(config_paths)
     ]  # fmt: skip
     work_dir = Path(work_dir) if work_dir is not None else work_dir_for(output)
-    record = register(renderers, config, work_dir, console=console)
-    write_registration(record, output)
-    return record
+    result = register(renderers, config, work_dir, console=console)
+    write_registration(result, output)
+    return result

@@ -418,9 +418,11 @@ def dumps(value: Any, indent: int = 0) -> str:
     return json.dumps(value)
 
 
-def write_registration(record: dict, path: Path | str) -> Path:
-    """Write the registration record as JSON, atomically (temp file + rename)."""
+def write_registration(record: RegistrationResult | dict, path: Path | str) -> Path:
+    """Write a registration (the typed result or its record) as JSON, atomically (temp file + rename)."""
     path = Path(path)
+    if isinstance(record, RegistrationResult):
+        record = record.to_record()
     write_text_atomic(path, dumps(record) + "\n")
     return path
 

@@ -55,7 +55,7 @@ class RegisterCommand(RegistrationConfig):
     """Torch device the runs render on (default: cuda when torch sees a GPU, else cpu)."""
     eval_num_rays_per_chunk: int | None = None
     """Rays per forward pass when rendering (default: each run's own)."""
-    def main(self, renderers: list | None = None) -> dict:
+    def main(self, renderers: list | None = None) -> dict:  # the record written
         """Register, write the file, print the summary. ``renderers`` replaces the runs of ``configs`` (tests)."""
         if renderers is None:
             check_device(self.device)
@@ -76,14 +76,15 @@ class RegisterCommand(RegistrationConfig):
         self._check_outputs(work_dir, renderers)
         config = RegistrationConfig(**{f: getattr(self, f) for f in RegistrationConfig.__dataclass_fields__})
         try:
-            record = register(renderers, config, work_dir, console=CONSOLE)
+            result = register(renderers, config, work_dir, console=CONSOLE)
         except RegistrationFailed as e:
             # Keep the rejected solution for inspection (threshold calibration), never as the output.
-            write_registration(e.record, Path(work_dir) / "rejected_registration.json")
+            write_registration(e.result, Path(work_dir) / "rejected_registration.json")
             raise
+        record = result.to_record()
         write_registration(record, self.output)
         print_summary(record)
-        odd = [n["name"] for n in record["nerfs"] if not 1e-3 <= n["scale_to_reference"] <= 1e3]
+        odd = [n.name for n in result.nerfs if not 1e-3 <= n.scale_to_reference <= 1e3]
         if odd:
             CONSOLE.print(f"[bold yellow]warning: implausible scale to the reference for {', '.join(odd)} (outside "
                           "1e-3..1e3): check that these runs show the same place[/]")  # fmt: skip

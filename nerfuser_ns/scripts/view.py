@@ -12,7 +12,6 @@ machines connect. Bad input prints one red line and exits with status 1.
 
 from __future__ import annotations
 
-import os
 import shutil
 import signal
 import socket
@@ -32,6 +31,7 @@ from rich.console import Console
 from rich.text import Text
 
 from nerfuser_ns import runs
+from nerfuser_ns.blend_settings import BlendSettings
 from nerfuser_ns.blending import BlendMethod
 from nerfuser_ns.method_configs.nerfuser import nerfuser_config
 from nerfuser_ns.model import NerfuserModel, NerfuserModelConfig
@@ -70,13 +70,17 @@ class ViewCommand:
 
     def main(self) -> None:
         check_device(self.device)
-        # The model reads its render-time settings from the environment when it is built.
+        blend: dict[str, Any] = {}
         if self.blend_method is not None:
-            os.environ["NERFUSER_BLEND_METHOD"] = self.blend_method
+            blend["method"] = self.blend_method
         if self.gamma is not None:
-            os.environ["NERFUSER_GAMMA"] = repr(float(self.gamma))
+            blend["gamma"] = float(self.gamma)
         if self.tau is not None:
-            os.environ["NERFUSER_TAU"] = "none" if self.tau == 0 else repr(float(self.tau))
+            blend["tau"] = None if self.tau == 0 else float(self.tau)
+        try:  # before minutes of loading
+            BlendSettings().replace(**blend)
+        except ValueError as e:
+            raise ViewerSetupError(str(e)) from None
         # SIGTERM stops as Ctrl+C does: the port and the render threads are released on the way out.
         signal.signal(signal.SIGTERM, _interrupt)
         running = None
@@ -88,6 +92,7 @@ class ViewCommand:
                 device=self.device,
                 max_res=self.max_res,
                 register_if_missing=self.register_if_missing,
+                blend=blend,
             )
             names = ", ".join(running.model.nerf_names)
             print(f"nerfuser viewer: {running.url} ({running.model.num_nerfs} NeRFs: {names}); Ctrl+C stops it")
@@ -205,17 +210,24 @@ def start_viewer(
     device: str | None = None,
     max_res: int | None = None,
     register_if_missing: bool = True,
+    blend: dict[str, Any] | None = None,
 ) -> RunningViewer:
     """Open nerfstudio's viewer on a fused run or a fusion spec (see :func:`load_fused_pipeline`); returns at once.
 
     What ``ns-viewer --load-config`` does, without blocking, on ``host`` (loopback by default) and ``port`` (None:
     7007 or the next free port). ``max_res`` sets the panel's "Max res" (default:
-    :data:`nerfuser_ns.viewer.CPU_MAX_RES` on the CPU, nerfstudio's 512 otherwise).
+    :data:`nerfuser_ns.viewer.CPU_MAX_RES` on the CPU, nerfstudio's 512 otherwise). ``blend``: initial blend settings
+    (``method``, ``gamma``, ``tau``, ``reference_nerf``) over the run's, through the model's ``set_blend``.
     """
     check_bind(host, port)  # viser's server thread dies on a bad bind and the caller would wait forever
     config, pipeline, step, run_dir = load_fused_pipeline(
         source, device=device, register_if_missing=register_if_missing
     )
+    if blend:
+        try:
+            pipeline.model.set_blend(**blend)
+        except ValueError as e:
+            raise ViewerSetupError(str(e)) from None
     tmp_dir = None
     if run_dir is None:  # the viewer keeps a log file (and its Render tab a config path) beside the run
         tmp_dir = run_dir = Path(tempfile.mkdtemp(prefix="nerfuser-view-"))

@@ -272,7 +272,9 @@ def work(tmp_path_factory):
 def test_object_centric_pair_recovers_the_exact_transform(work):
     layout = scenes.make_layout("object-centric", seed=0, num_views=16, num_test_views=1, width=W, height=H)
     renderers = [SceneFrameRenderer.from_layout(layout, c) for c in ("capture_a", "capture_b")]
-    record = reg.register(renderers, small_config(), work, QUIET)
+    result = reg.register(renderers, small_config(), work, QUIET)
+    assert isinstance(result, reg.RegistrationResult) and result.nerfs[1].T_to_reference.shape == (4, 4)
+    record = result.to_record()
     err = sim3.sim3_errors(np.array(record["nerfs"][1]["T_to_reference"]),
                            gt_transform(layout, ("capture_a", "capture_b")))  # fmt: skip
     assert err.r_err_deg < 0.05 and err.t_err < 0.002 and err.s_err < 0.002
@@ -290,7 +292,7 @@ def test_three_street_nerfs_in_one_frame(work):
     layout = scenes.make_layout("street", seed=0, num_views=16, num_test_views=1, width=W, height=H)
     names = [c.name for c in layout.captures][:3]
     renderers = [SceneFrameRenderer.from_layout(layout, c) for c in names]
-    record = reg.register(renderers, small_config(), work, QUIET)
+    record = reg.register(renderers, small_config(), work, QUIET).to_record()
     for i in (1, 2):
         err = sim3.sim3_errors(np.array(record["nerfs"][i]["T_to_reference"]), gt_transform(layout, (names[0],
                                                                                                        names[i])))
@@ -303,7 +305,9 @@ def test_room_picks_the_true_link_over_its_half_turn_twin(work):
     the cross-render check rejects the twin, the true transform is kept."""
     layout = scenes.make_layout("room", seed=0, num_views=16, num_test_views=1, width=W, height=H)
     renderers = [SceneFrameRenderer.from_layout(layout, c) for c in ("capture_a", "capture_b")]
-    record = reg.register(renderers, small_config(), work, QUIET)
+    result = reg.register(renderers, small_config(), work, QUIET)
+    assert isinstance(result, reg.RegistrationResult) and result.nerfs[1].T_to_reference.shape == (4, 4)
+    record = result.to_record()
     err = sim3.sim3_errors(np.array(record["nerfs"][1]["T_to_reference"]),
                            gt_transform(layout, ("capture_a", "capture_b")))  # fmt: skip
     assert err.r_err_deg < 0.1 and err.t_err < 0.005

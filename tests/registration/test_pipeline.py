@@ -15,6 +15,7 @@ import json
 import shutil
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -170,14 +171,14 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
         tried.append(config.sampling.source)
         if config.sampling.source == "training":
             raise reg.RegistrationError("a: its views form a separate SfM model")
-        return {"nerfs": []}
+        return SimpleNamespace(sampling_choice=None)  # register() records its choice on the result
 
     monkeypatch.setattr(reg_pipeline, "register_once", once)
     console = Console(record=True, width=200)
     record = reg.register(oc_renderers, reg.RegistrationConfig(), work, console=console)
     assert tried == ["training", "both"]
-    assert record["sampling_choice"]["source"] == "both"
-    assert record["sampling_choice"]["tried_before"] == [
+    assert record.sampling_choice["source"] == "both"
+    assert record.sampling_choice["tried_before"] == [
         {"source": "training", "error": "a: its views form a separate SfM model"}]
     text = console.export_text()
     for line in ("pose sampling: training", "training poses did not register", "pose sampling: both"):
@@ -361,7 +362,7 @@ def test_ctrl_c_is_one_line(tmp_path, capsys, monkeypatch):
 def test_an_implausible_scale_is_warned_about(oc_renderers, oc_record, tmp_path, capsys, monkeypatch):
     record = copy.deepcopy(oc_record)
     record["nerfs"][1]["scale_to_reference"] = 1e-6
-    monkeypatch.setattr(cli, "register", lambda *args, **kwargs: record)
+    monkeypatch.setattr(cli, "register", lambda *args, **kwargs: reg.RegistrationResult.from_record(record))
     rc, out, _ = run_cli(tmp_path, oc_renderers, None, work_dir=tmp_path / "work")
     printed = " ".join(capsys.readouterr().out.split())
     assert rc == 0 and out.is_file()
