@@ -157,7 +157,9 @@ def test_peak_memory_sees_reused_heap():
     del blocks
     with evaluation._PeakRSS() as mem:
         again = [np.ones(4096) for _ in range(1600)]  # 50 MiB
-    assert 40 < mem.added_mib < 80, mem.added_mib
+    # without the trim the reused heap hides nearly all of it (~0 MiB); the allocator keeps some pages resident in a
+    # process that has run other tests (39 MiB seen under pytest-xdist), so the bound is half the allocation
+    assert 25 < mem.added_mib < 80, mem.added_mib
     del again, top
 
 
@@ -299,7 +301,11 @@ def test_evaluate_quick_mode_writes_every_section_and_caches(tmp_path):
     """``scripts/evaluate.py --quick``: every section computed, a re-run reuses every cached result, and a changed
     input (the gammas) recomputes only what depends on it."""
     out = tmp_path / "eval"
-    cmd = [sys.executable, str(ROOT / "scripts/evaluate.py"), "--quick", "--output-dir", str(out)]
+    # --quick made smaller still (every section runs; the figures are not what this checks)
+    smaller = ["--registration-poses", "8", "--render-size", "64", "48", "--ablation-counts", "4",
+               "--ablation-hemisphere-poses", "4", "--paper-hemisphere-poses", "4", "--cloud-views", "4",
+               "--timing-rays", "256"]  # fmt: skip
+    cmd = [sys.executable, str(ROOT / "scripts/evaluate.py"), "--quick", "--output-dir", str(out), *smaller]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     first = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -324,13 +330,13 @@ def test_evaluate_quick_mode_writes_every_section_and_caches(tmp_path):
     png = (out / gamma["plot"]).read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     arms = [(r["count"], r["source"]) for r in report["pose_ablation"]["rows"]]
-    assert arms == [(8, "training"), (8, "both"), (8, "hemisphere")]
+    assert arms == [(4, "training"), (4, "both"), (4, "hemisphere")]
     (cost,) = report["cost"]["render"]
-    assert cost["ratio"] > 0 and cost["num_rays"] == 1024
+    assert cost["ratio"] > 0 and cost["num_rays"] == 256
     md = (out / "report.md").read_text()
     for heading in ("## 1. Registration", "## 2. Blending", "## 3. Gamma", "## 4. Re-render pose", "## 5. Cost"):
         assert heading in md
-    assert report["machine"]["cpus"] and report["command"].endswith("--quick --output-dir " + str(out))
+    assert report["machine"]["cpus"] and report["command"].endswith(" ".join(cmd[2:]))
 
     # a re-run with other gammas: every cached result reused but the gamma sweep's
     again = subprocess.run([*cmd, "--gammas", "1", "10"], capture_output=True, text=True, cwd=ROOT, env=env)

@@ -4,6 +4,8 @@ scene renderers (three street segments, the neighbours given, an unrelated NeRF)
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from rich.console import Console
@@ -241,11 +243,17 @@ def work(tmp_path_factory):
     return tmp_path_factory.mktemp("graph_work")
 
 
-def test_three_street_nerfs_by_retrieval(street, work):
+@pytest.fixture(scope="module")
+def serial_record(street, work) -> dict:
+    """The three street segments registered by retrieval in this process (the default executor)."""
+    return reg.register(street[1], graph_config(), work, QUIET).to_record()
+
+
+def test_three_street_nerfs_by_retrieval(street, serial_record):
     """Retrieval proposes every pair of three overlapping street segments; each registers, the triangle closes within
     the thresholds, the solve matches the truth; the record has its graph section and reads back; the CLI prints it."""
     layout, renderers = street
-    record = reg.register(renderers, graph_config(), work, QUIET)
+    record = copy.deepcopy(serial_record)
     names = [r.name for r in renderers]
     for i in (1, 2):
         err = sim3.sim3_errors(np.array(record["nerfs"][i]["T_to_reference"]), truth_in(layout, names[0], names[i]))
@@ -275,7 +283,7 @@ def test_neighbours_given_form_a_tree_in_the_chosen_reference(street, work):
     names = [r.name for r in renderers]
     cfg = graph_config(reference=1)
     cfg.graph.neighbours = (f"{names[0]}:{names[1]}", "2:1")
-    record = reg.register(renderers, cfg, work, QUIET)
+    record = reg.register(renderers, cfg, work, QUIET).to_record()
     g = record["graph"]
     assert g["candidates"]["source"] == "neighbours given"
     assert [e["names"] for e in g["edges"]] == [[names[0], names[1]], [names[1], names[2]]]
@@ -307,7 +315,7 @@ def test_pieces_left_by_retrieval_are_bridged(street, work):
     names = [r.name for r in renderers]
     cfg = graph_config()
     cfg.graph.top_k, cfg.graph.min_similarity = 0, 2.0
-    record = reg.register(renderers, cfg, work, QUIET)
+    record = reg.register(renderers, cfg, work, QUIET).to_record()
     g = record["graph"]
     assert g["bridging_rounds"] == 1 and len(g["candidates"]["pairs"]) == 3
     for i in (1, 2):
@@ -364,14 +372,14 @@ def test_graph_rejects_negative_ray_gpus(street, tmp_path):
     assert not (tmp_path / "renders").exists()  # refused before any work
 
 
-def test_ray_tasks_give_the_serial_result(street, work, tmp_path):
+def test_ray_tasks_give_the_serial_result(street, serial_record, tmp_path):
     """Renders, keypoints and pair registrations as Ray tasks on this machine, in a fresh work folder (every render
     made by a task, written to the render cache), give the serial run's transforms and graph exactly."""
     _, renderers = street
-    serial = reg.register(renderers, graph_config(), work, QUIET)
+    serial = copy.deepcopy(serial_record)
     cfg = graph_config()
     cfg.graph.executor = "ray"
-    distributed = reg.register(renderers, cfg, tmp_path, QUIET)
+    distributed = reg.register(renderers, cfg, tmp_path, QUIET).to_record()
     assert [n["T_to_reference"] for n in distributed["nerfs"]] == [n["T_to_reference"] for n in serial["nerfs"]]
     tasks = {kind: len(t) for kind, t in serial["graph"].pop("tasks_s").items()}
     assert {kind: len(t) for kind, t in distributed["graph"].pop("tasks_s").items()} == tasks
