@@ -179,8 +179,11 @@ def main(cfg: DemoConfig) -> None:
                               f"NeRF: {REFERENCE} alone)")  # fmt: skip
     blend_table.add_column("method")
     columns = {}
+    # each run's training cameras (its own frame, whatever the transforms) as the registration recorded them: every
+    # method renders (render_all_methods), coverage included, and without them it falls back with a warning
+    cameras = {} if reg_path is None else {name: e.training_cameras for name, e in zip(names, entries, strict=True)}
     for label, transforms in transforms_sets.items():
-        nerfs = [(name, run.model, transforms[name]) for name, run in loaded.items()]
+        nerfs = [(name, run.model, transforms[name], cameras.get(name)) for name, run in loaded.items()]
         fused = fuse_models(nerfs, render_all_methods=True, share_outputs=False)
         t = time.perf_counter()
         out = runs.render_views(fused, cams, outputs=keys, description=f"rendering the fused scene ({label})")
