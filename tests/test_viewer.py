@@ -527,7 +527,10 @@ def fuse(spec: Path, experiment: str) -> Path:
 
 @pytest.fixture(scope="module")
 def fused_run(fusion_spec) -> Path:
-    return fuse(fusion_spec, "fused")
+    """A run fused from the runs alone, as a user fuses their own (no test_data): nerfstudio's viewer reads every
+    attribute of the pipeline, the eval loader included, and must still serve the scene."""
+    spec = write_fusion_spec(fusion_spec.parent / "fusion_no_test.json", RUNS, registration="registration.json")
+    return fuse(spec, "fused_no_test")
 
 
 def page_text(browser: HeadlessChromium) -> str:
@@ -553,7 +556,8 @@ def ns_viewer(config: Path) -> tuple[Command, int]:
 
 
 def test_ns_viewer_shows_a_fused_run(fused_run, browser):
-    """nerfstudio's own command on the fused run: the page shows the blended render and the NeRFuser panel."""
+    """nerfstudio's own command on the fused run (no test images): the page shows the blended render and the NeRFuser
+    panel."""
     command, port = ns_viewer(fused_run)
     try:
         browser.call("Page.navigate", url=f"http://127.0.0.1:{port}/")
@@ -573,6 +577,7 @@ def test_ns_viewer_shows_a_fused_run(fused_run, browser):
         browser.call("Page.navigate", url="about:blank")
         out = command.stop()
     assert command.proc.returncode in (0, -signal.SIGTERM), out[-3000:]
+    assert "Traceback" not in out and "no test images" not in out, out[-3000:]
     assert port_closed(port)
 
 
@@ -618,17 +623,6 @@ def test_viewer_opens_a_registration_file_without_test_images(fusion_spec):
     finally:
         running.stop()
     assert port_closed(running.port)
-
-
-def test_ns_viewer_opens_a_fused_run_without_test_images(fusion_spec):
-    """A run fused from the user's own runs alone (no test_data): ns-viewer reads every attribute of the pipeline,
-    the eval loader included, and must still serve the scene."""
-    spec = write_fusion_spec(fusion_spec.parent / "fusion_no_test.json", RUNS, registration="registration.json")
-    command, port = ns_viewer(fuse(spec, "fused_no_test"))
-    out = command.stop()
-    assert command.proc.returncode in (0, -signal.SIGTERM), out[-3000:]
-    assert "Traceback" not in out and "no test images" not in out, out[-3000:]
-    assert port_closed(port)
 
 
 def test_bad_input_is_one_line(tmp_path):
