@@ -377,7 +377,10 @@ def test_page_shows_the_blended_render_low_resolution_first(session, tmp_path):
     assert machine.target_fps < 30
     aspect = high["image"].shape[1] / high["image"].shape[0]
     floor = min(MAX_RES / 2, np.sqrt(control.rays_per_second * LOW_RES_SECONDS / aspect)) - 10  # rounded to tens
-    assert all(f["image"].shape[0] >= floor for f in low), ([f["image"].shape for f in low], floor)
+    # the first frame is sized by that; later ones by nerfstudio's own timing of the frames before, which a busy
+    # machine (another test process beside this one) can shrink to its 30 px floor
+    assert low[0]["image"].shape[0] >= floor, ([f["image"].shape for f in low], floor)
+    assert all(f["image"].shape[0] >= 30 for f in low), [f["image"].shape for f in low]
     frame = high["image"].astype(np.float32) / 255
     assert frame.std() > 0.08 and np.ptp(frame.reshape(-1, 3), axis=0).min() > 0.3  # a scene, not a flat colour
 
