@@ -135,6 +135,7 @@ class LazyLPIPS(nn.Module):
         global _lpips_warned
         if not self._metric and not self._unavailable:
             if lpips_weights_available():
+                # here: the real class only once its weights are known to be on disk
                 from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity as _Real
 
                 self._metric.append(_Real(*self._args, **self._kwargs))
@@ -154,7 +155,7 @@ class LazyLPIPS(nn.Module):
 
 
 def _make_lpips_lazy() -> None:
-    import torchmetrics.image.lpip as lpip_module
+    import torchmetrics.image.lpip as lpip_module  # here: only install() patches it
 
     # nerfstudio models import the class inside populate_modules, so replacing the module attribute suffices.
     lpip_module.LearnedPerceptualImagePatchSimilarity = LazyLPIPS  # type: ignore[misc,assignment]
@@ -170,6 +171,7 @@ def _make_lpips_lazy() -> None:
 
 
 def _patch_hash_encoding() -> None:
+    # here: nerfstudio's field modules load only when install() patches them
     from nerfstudio.field_components.encodings import HashEncoding
 
     if getattr(HashEncoding, "_nerfuser_patched", False):
@@ -191,7 +193,7 @@ def _run_compiled(module: nn.Module, in_tensor: torch.Tensor, stock_forward: Any
     if in_tensor.shape[:-1].numel() == 0:
         return stock_forward(module, in_tensor)
     if _compiled_hash_fwd is None:
-        from nerfstudio.field_components.encodings import HashEncoding
+        from nerfstudio.field_components.encodings import HashEncoding  # here: see _patch_hash_encoding
 
         reason = _compile_unusable_reason()
         if reason is not None:
@@ -245,7 +247,7 @@ def _compile_unusable_reason() -> str | None:
     if not callable(getattr(torch, "compile", None)):
         return f"torch {torch.__version__} has no torch.compile (torch >= 2.0 needed)"
     try:
-        from torch._dynamo.eval_frame import check_if_dynamo_supported
+        from torch._dynamo.eval_frame import check_if_dynamo_supported  # here: a private module, may move
     except ImportError:  # pragma: no cover - a torch that moved it: let the compile attempt decide
         return None
     try:
