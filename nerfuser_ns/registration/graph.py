@@ -161,7 +161,7 @@ def register_graph(
 def _register_graph(
     renderers: Sequence[Renderer], config: RegistrationConfig, work_dir: Path, console: Console, ref: int,
     min_views: int, intr: Intrinsics, given: list[tuple[int, int]], executor: Executor,
-) -> dict:
+) -> RegistrationResult:
     """:func:`register_graph` once its inputs are checked, with the executor its tasks run on."""
     gc = config.graph
     names = [r.name for r in renderers]
