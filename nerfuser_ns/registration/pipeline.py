@@ -250,7 +250,7 @@ def register_known_geometry(
     """One registration on known geometry (mode ``known-geometry``, ours); returns the result.
 
     Raises :class:`RegistrationError` (one line) when a NeRF has too few reliable keypoints, a NeRF matches no other,
-    or two hypotheses are equally good; :class:`RegistrationFailed` (with the record) when the self-check rejects the
+    or two hypotheses are equally good; :class:`RegistrationFailed` (with the result) when the self-check rejects the
     solution.
     """
     work_dir = Path(work_dir)
