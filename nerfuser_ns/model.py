@@ -273,6 +273,15 @@ class NerfuserModel(Model):
     reference_nerf = property(lambda self: self.blend_settings.reference_nerf,
                               lambda self, v: self.set_blend(reference_nerf=v))  # fmt: skip
 
+    def _reference_options(self) -> list[str]:
+        """The reference NeRF control's choices: "index: name", so equal names stay distinct."""
+        return [f"{i}: {name}" for i, name in enumerate(self.nerf_names)]
+
+    def blend_control_values(self) -> dict[str, Any]:
+        """The viewer controls' values for the current settings (tau off shows as 0)."""
+        return {"blend_method": self.blend_method, "gamma": float(self.gamma), "tau": float(self.tau or 0.0),
+                "reference_nerf": self._reference_options()[self.reference_nerf % self.num_nerfs]}  # fmt: skip
+
     def _add_viewer_controls(self) -> None:
         def set_method(element) -> None:  # noqa: ANN001
             self.set_blend(method=element.value)
@@ -283,24 +292,21 @@ class NerfuserModel(Model):
         def set_tau(element) -> None:  # noqa: ANN001
             self.set_blend(tau=None if float(element.value) <= 0 else max(float(element.value), 1.0))
 
-        # The NeRF of the `nerf` method, picked by name ("index: name" so equal names stay distinct).
-        reference_options = [f"{i}: {name}" for i, name in enumerate(self.nerf_names)]
+        reference_options = self._reference_options()
 
         def set_reference(element) -> None:  # noqa: ANN001
             self.set_blend(reference_nerf=reference_options.index(element.value))
 
+        values = self.blend_control_values()
         controls = {
             "blend_method": ViewerDropdown(
-                "NeRFuser blend method", self.blend_method, list(BLEND_METHODS), cb_hook=set_method
+                "NeRFuser blend method", values["blend_method"], list(BLEND_METHODS), cb_hook=set_method
             ),
             "reference_nerf": ViewerDropdown(
-                "NeRFuser reference NeRF",
-                reference_options[self.reference_nerf % self.num_nerfs],
-                reference_options,
-                cb_hook=set_reference,
+                "NeRFuser reference NeRF", values["reference_nerf"], reference_options, cb_hook=set_reference
             ),
-            "gamma": ViewerNumber("NeRFuser gamma", float(self.gamma), cb_hook=set_gamma),
-            "tau": ViewerNumber("NeRFuser tau (0: off)", float(self.tau or 0.0), cb_hook=set_tau),
+            "gamma": ViewerNumber("NeRFuser gamma", values["gamma"], cb_hook=set_gamma),
+            "tau": ViewerNumber("NeRFuser tau (0: off)", values["tau"], cb_hook=set_tau),
         }
 
         # The controls at the top of the viewer's panel, scene groups (NeRF frames, registration and test cameras), CPU

@@ -369,14 +369,9 @@ class NerfuserSceneControl(ViewerControl):
     def _sync_controls(self) -> None:
         """The controls' initial values from the model's settings now (they may have changed since the model made
         them, e.g. ``ns-nerfuser-view --gamma``). Before installation a value is only a default: no callback runs."""
-        model, controls = self._model, self.controls
-        values = {"blend_method": model.blend_method, "gamma": float(model.gamma), "tau": float(model.tau or 0.0)}
-        if "reference_nerf" in controls:
-            options = list(controls["reference_nerf"].options)
-            values["reference_nerf"] = options[model.reference_nerf % len(options)]
-        for name, value in values.items():
-            if name in controls:
-                controls[name].value = value
+        for name, value in self._model.blend_control_values().items():
+            if name in self.controls:
+                self.controls[name].value = value
 
     def _add_panel(self, viewer: Viewer, scene: FusedScene) -> None:
         server = viewer.viser_server
