@@ -141,6 +141,7 @@ def main(cfg: BenchRegistrationConfig) -> None:
             continue
         captures, configs, gt_nerf_to_world = scene.captures, scene.configs, scene.nerf_to_world()
         reg_cfg = RegistrationConfig(
+            mode="sfm",  # this benchmark measures the paper's registration
             sampling=PoseSamplingConfig(
                 source=cfg.source, max_training_poses=count, num_poses=count, seed=seed, width=cfg.width,
                 height=cfg.height, fov_deg=cfg.fov_deg,

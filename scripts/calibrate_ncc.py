@@ -96,7 +96,8 @@ def main(cfg: CalibrateNccConfig) -> None:
     sampling = PoseSamplingConfig(
         source="training", max_training_poses=cfg.poses, width=cfg.width, height=cfg.height, fov_deg=65.0
     )
-    reg_cfg = RegistrationConfig(sampling=sampling, self_check_views=cfg.views)
+    # the threshold was calibrated on the SfM mode's results
+    reg_cfg = RegistrationConfig(mode="sfm", sampling=sampling, self_check_views=cfg.views)
     rows = []
     for spec in cfg.scenes:
         scene = SceneRuns.parse(spec)

@@ -235,7 +235,9 @@ def registration_case(
         height=h,
         fov_deg=65.0,
     )
-    reg_cfg = RegistrationConfig(sampling=sampling, sfm=SfMConfig(num_threads=1), estimator=estimator, refine=refine)
+    reg_cfg = RegistrationConfig(
+        mode="sfm", sampling=sampling, sfm=SfMConfig(num_threads=1), estimator=estimator, refine=refine
+    )
     inputs = {"runs": scene.run_keys, "settings": asdict(reg_cfg), "v": 1}
 
     def compute() -> dict:

@@ -26,6 +26,7 @@ def small_config(**kw) -> reg.RegistrationConfig:
     # the paper's hemisphere at a fixed camera (the automatic choice has tests of its own)
     sampling_kw = {"source": "hemisphere", "fov_deg": 60.0, **kw.pop("sampling", {})}
     sampling = reg.PoseSamplingConfig(num_poses=kw.pop("num_poses", 20), width=W, height=H, **sampling_kw)
+    kw.setdefault("mode", "sfm")  # the SfM mode's tests; the other modes build their own configs
     return reg.RegistrationConfig(sampling=sampling, self_check_views=kw.pop("self_check_views", 2), **kw)
 
 
