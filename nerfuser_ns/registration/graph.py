@@ -10,8 +10,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float
 from rich.console import Console
 
+from nerfuser_ns import sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.assemble import build_known_geometry_result, graph_section
 from nerfuser_ns.registration.config import (
@@ -45,6 +47,7 @@ from nerfuser_ns.registration.render_cache import (
     check_inputs,
 )
 from nerfuser_ns.registration.retrieval import (
+    border_ranks,
     bridging_pairs,
     candidate_nerf_pairs,
     components,
@@ -104,6 +107,25 @@ def _register_pair(
         what = "saw nothing in common" if not np.isfinite(check.score) else f"NCC {check.score:.2f}"
         return PairOutcome(m, hyps, None, f"cross-render self-check failed ({what} < {config.ncc_threshold})", check)
     return PairOutcome(m, hyps, n, None, check)
+
+
+def piece_positions(
+    k: int, edges: dict[tuple[int, int], np.ndarray], views: Sequence[ViewSet]
+) -> Float[np.ndarray, "k 3"]:
+    """Each NeRF's mean camera centre in the frame of its piece (the first NeRF of each connected component of
+    ``edges``: ``T_b->a`` per pair a < b, composed from that NeRF outwards)."""
+    T: list[np.ndarray | None] = [None] * k
+    for root in np.unique(components(k, sorted(edges))):
+        T[root] = np.eye(4)
+        grown = True
+        while grown:
+            grown = False
+            for (a, b), T_ba in edges.items():
+                if T[a] is not None and T[b] is None:  # p_root = T_a p_a = T_a T_b->a p_b
+                    T[b], grown = T[a] @ T_ba, True
+                elif T[b] is not None and T[a] is None:
+                    T[a], grown = T[b] @ sim3.invert_sim3(T_ba), True
+    return np.stack([sim3.transform_points(T[i], vs.c2w[:, :3, 3]).mean(0) for i, vs in enumerate(views)])
 
 
 def _parse_neighbours(items: Sequence[str], names: Sequence[str]) -> list[tuple[int, int]]:
@@ -201,8 +223,12 @@ def _register_graph(
                 choice[(a, b)] = out.choice
         if given or bridged == gc.bridge_rounds:
             break
-        # registered pairs that leave the NeRFs in pieces: each piece tries its next-best partners outside it
-        batch = bridging_pairs(scores, sorted(choice), set(matches), gc.bridge_pairs)
+        # registered pairs that leave the NeRFs in pieces: each piece tries its next-best partners outside it, from
+        # its outlying NeRFs first (two more per piece each round)
+        linked = sorted(choice)
+        positions = piece_positions(k, {pair: hypotheses[pair][n].T for pair, n in choice.items()}, views)
+        batch = bridging_pairs(scores, linked, set(matches), gc.bridge_pairs, border_ranks(k, linked, positions),
+                               2 * (bridged + 1))  # fmt: skip
         if not batch:
             break
         bridged += 1

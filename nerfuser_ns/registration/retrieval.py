@@ -115,12 +115,33 @@ def components(k: int, linked: Sequence[tuple[int, int]]) -> Int[np.ndarray, " k
     return np.array([first[c] for c in label])
 
 
+def border_ranks(
+    k: int, linked: Sequence[tuple[int, int]], positions: Float[np.ndarray, "k 3"]
+) -> Int[np.ndarray, " k"]:
+    """Per NeRF, its rank within its component of ``linked`` by distance from the component's centroid, farthest
+    first (0: the most outlying NeRF of its piece; a NeRF alone is rank 0). ``positions``: each NeRF's location (e.g.
+    the mean of its camera centres) in a frame shared by its component; only distances inside a component are
+    compared, so each component may have its own frame and scale."""
+    label = components(k, linked)
+    rank = np.zeros(k, dtype=int)
+    for c in np.unique(label):
+        inside = np.flatnonzero(label == c)
+        d = np.linalg.norm(positions[inside] - positions[inside].mean(0), axis=1)
+        rank[inside[np.argsort(-d, kind="stable")]] = np.arange(len(inside))
+    return rank
+
+
 def bridging_pairs(
-    scores: Float[np.ndarray, "k k"], linked: Sequence[tuple[int, int]], tried: set[tuple[int, int]], per_component: int
+    scores: Float[np.ndarray, "k k"], linked: Sequence[tuple[int, int]], tried: set[tuple[int, int]],
+    per_component: int, border: Int[np.ndarray, " k"] | None = None, max_border_rank: int | None = None,
 ) -> list[tuple[int, int]]:
     """NeRF pairs (a < b) that could join a graph left in pieces: for every component of ``linked``, its
     ``per_component`` best-scoring pairs to NeRFs outside it that are not in ``tried``, sorted. Empty when the graph is
     connected or every joining pair was tried.
+
+    With ``border`` (:func:`border_ranks`) and ``max_border_rank``, a piece first pairs its NeRFs of rank below
+    ``max_border_rank`` with the NeRFs of the same ranks of other pieces (pieces meet at their edges, not through their
+    middles), and looks beyond them only when no such pair is left untried.
 
     Retrieval scores rank a NeRF's true neighbours only roughly where the captures look alike everywhere (shared
     materials, repeated facades); asking each piece for its next-best partners connects such graphs at a cost that
@@ -128,13 +149,14 @@ def bridging_pairs(
     """
     k = len(scores)
     label = components(k, linked)
+    outer = np.ones(k, dtype=bool) if border is None or max_border_rank is None else border < max_border_rank
     pairs: set[tuple[int, int]] = set()
     for c in np.unique(label):
         inside = np.flatnonzero(label == c)
         if len(inside) == k:
             return []
-        options = [(float(scores[a, b]), min(a, b), max(a, b)) for a in inside for b in range(k)
-                   if label[b] != c and (min(a, b), max(a, b)) not in tried]  # fmt: skip
-        options.sort(key=lambda o: (-o[0], o[1], o[2]))
-        pairs.update((int(a), int(b)) for _, a, b in options[:per_component])
+        options = [(not (outer[a] and outer[b]), -float(scores[a, b]), min(a, b), max(a, b)) for a in inside
+                   for b in range(k) if label[b] != c and (min(a, b), max(a, b)) not in tried]  # fmt: skip
+        options.sort()
+        pairs.update((int(a), int(b)) for _, _, a, b in options[:per_component])
     return sorted(pairs)

@@ -213,6 +213,54 @@ def test_bridging_pairs_join_the_pieces_by_their_best_untried_partners():
     assert retrieval.bridging_pairs(scores, linked, everything, per_component=2) == []
 
 
+def test_bridging_pairs_start_from_the_pieces_outlying_nerfs():
+    """Two pieces of a chain of 8 NeRFs (0-3 and 4-7, each in a frame of its own): their outlying NeRFs are the
+    chain's ends, and bridging pairs those first although retrieval scores middles higher."""
+    rng = np.random.default_rng(1)
+    scores = rng.uniform(0.6, 0.7, size=(8, 8))
+    scores = np.triu(scores, 1) + np.triu(scores, 1).T
+    scores[1, 5] = scores[5, 1] = scores[2, 6] = scores[6, 2] = 0.95  # look alike, do not overlap
+    linked = [(0, 1), (1, 2), (2, 3), (4, 5), (5, 6), (6, 7)]
+    # piece {4..7} in a frame of its own: mirrored, scaled by 2, shifted; ranks compare distances inside a piece only
+    x = np.array([0.0, 1, 2, 3, 10 - 2 * 4, 10 - 2 * 5, 10 - 2 * 6, 10 - 2 * 7])
+    positions = np.stack([x, np.zeros(8), np.zeros(8)], 1)
+    rank = retrieval.border_ranks(8, linked, positions)
+    assert set(rank[[0, 3]]) == {0, 1} and set(rank[[1, 2]]) == {2, 3}
+    assert set(rank[[4, 7]]) == {0, 1} and set(rank[[5, 6]]) == {2, 3}
+    tried = set(linked)
+    by_score = retrieval.bridging_pairs(scores, linked, tried, per_component=1)
+    assert by_score == [(1, 5)]
+    by_border = retrieval.bridging_pairs(scores, linked, tried, per_component=4, border=rank, max_border_rank=2)
+    assert by_border == [(0, 4), (0, 7), (3, 4), (3, 7)]
+    # once the outlying pairs are tried, the pieces look beyond them (best score first)
+    again = retrieval.bridging_pairs(scores, linked, tried | set(by_border), per_component=1, border=rank,
+                                     max_border_rank=2)  # fmt: skip
+    assert again == [(1, 5)]
+
+
+def test_piece_positions_compose_the_pieces_edges():
+    """Each NeRF's mean camera centre in its piece's frame (the piece's first NeRF), from the pairwise SIM(3)s."""
+    from types import SimpleNamespace
+
+    from nerfuser_ns.registration.graph import piece_positions
+
+    rng = np.random.default_rng(2)
+    truth = [np.eye(4)] + [sim3.make_sim3(sim3.so3_exp(rng.normal(size=3)), rng.normal(size=3), np.exp(rng.normal()))
+                           for _ in range(3)]  # fmt: skip
+    centres = [rng.normal(size=(5, 3)) for _ in range(4)]  # in each NeRF's own frame
+    views = []
+    for c in centres:
+        c2w = np.tile(np.eye(4), (len(c), 1, 1))
+        c2w[:, :3, 3] = c
+        views.append(SimpleNamespace(c2w=c2w))
+    # NeRFs 0, 1, 2 in one piece (edges T_b->a), NeRF 3 alone
+    edges = {(0, 1): sim3.invert_sim3(truth[0]) @ truth[1], (1, 2): sim3.invert_sim3(truth[1]) @ truth[2]}
+    got = piece_positions(4, edges, views)
+    for i in range(3):
+        np.testing.assert_allclose(got[i], sim3.transform_points(truth[i], centres[i]).mean(0), atol=1e-9)
+    np.testing.assert_allclose(got[3], centres[3].mean(0), atol=1e-12)
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # The graph mode end to end on ground-truth renderers (exact depth)
 
