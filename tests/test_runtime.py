@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import platform
 import socket
+import sys
 
 import numpy as np
 import pytest
@@ -94,3 +96,53 @@ def test_bad_checkpoints_give_one_line_errors(tmp_path):
     torch.save({"weights": torch.ones(1)}, other)
     with pytest.raises(ValueError, match="no 'pipeline' entry"):
         runtime.load_checkpoint(other)
+
+
+class _FakeMallopt:
+    """glibc's mallopt as ctypes gives it: a callable that takes argtypes/restype and records its calls."""
+
+    def __init__(self, result: int):
+        self.calls: list[tuple[int, int]] = []
+        self.result = result
+
+    def __call__(self, param: int, value: int) -> int:
+        self.calls.append((param, value))
+        return self.result
+
+
+class _FakeLibc:
+    def __init__(self, result: int = 1):
+        self.mallopt = _FakeMallopt(result)
+
+
+@pytest.mark.parametrize("env, cuda, expected", [("1", False, True), ("0", False, False), ("1", True, False)])
+def test_allocator_tuning_follows_environment_and_device(monkeypatch, env, cuda, expected):
+    fake = _FakeLibc()
+    monkeypatch.setattr(runtime.ctypes, "CDLL", lambda name: fake)
+    monkeypatch.setattr(runtime.sys, "platform", "linux")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda)
+    monkeypatch.setenv("NERFUSER_MALLOC_TUNING", env)
+    assert runtime.tune_allocator() is expected
+    # glibc's M_MMAP_THRESHOLD (-3) at its 64-bit maximum, M_TRIM_THRESHOLD (-1) above it, or nothing at all
+    assert fake.mallopt.calls == ([(-3, 32 * 1024 * 1024), (-1, 1024 * 1024 * 1024)] if expected else [])
+
+
+def test_allocator_tuning_reports_a_refusal_and_other_platforms(monkeypatch):
+    monkeypatch.setattr(runtime.ctypes, "CDLL", lambda name: _FakeLibc(result=0))
+    monkeypatch.setattr(runtime.sys, "platform", "linux")
+    assert runtime.tune_allocator(True) is False  # glibc refused a value
+    monkeypatch.setattr(runtime.sys, "platform", "darwin")
+    assert runtime.tune_allocator(True) is False
+
+    def no_mallopt(name):
+        raise AttributeError("mallopt")
+
+    monkeypatch.setattr(runtime.sys, "platform", "linux")
+    monkeypatch.setattr(runtime.ctypes, "CDLL", no_mallopt)
+    assert runtime.tune_allocator(True) is False
+
+
+def test_allocator_tuning_sets_real_glibc_thresholds():
+    """The real mallopt accepts both values on Linux with glibc (a value glibc refused would make it False)."""
+    expected = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
+    assert runtime.tune_allocator(True) is expected
