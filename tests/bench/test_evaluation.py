@@ -304,7 +304,7 @@ def test_evaluate_quick_mode_writes_every_section_and_caches(tmp_path):
     # --quick made smaller still (every section runs; the figures are not what this checks)
     smaller = ["--pose-seeds", "0", "--registration-poses", "8", "--render-size", "64", "48", "--ablation-counts", "4",
                "--ablation-hemisphere-poses", "4", "--paper-hemisphere-poses", "4", "--cloud-views", "4",
-               "--timing-rays", "256"]  # fmt: skip
+               "--timing-rays", "256", "--test-views", "1", "--gamma-views", "1"]  # fmt: skip
     cmd = [sys.executable, str(ROOT / "scripts/evaluate.py"), "--quick", "--output-dir", str(out), *smaller]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     first = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env)
