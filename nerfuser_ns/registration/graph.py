@@ -4,6 +4,7 @@ each registered on known geometry (:mod:`.pairwise`), joined by :mod:`.pose_grap
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -15,6 +16,7 @@ from rich.console import Console
 
 from nerfuser_ns import sim3
 from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration.assemble import build_known_geometry_result, graph_section
 from nerfuser_ns.registration.config import (
     SUGGESTION,
@@ -180,6 +182,30 @@ def register_graph(
         executor.close()
 
 
+PAIR_OUTCOMES_FILE = "graph_pairs.json"
+"""Written to the work folder when the registered pairs leave the NeRFs in pieces: what each candidate pair gave."""
+
+
+def write_pair_outcomes(
+    path: Path, names: Sequence[str], scores: Float[np.ndarray, "k k"], candidates: Sequence[tuple[int, int]],
+    accepted: Sequence[tuple[int, int]], rejected: dict[tuple[int, int], str], source: str, bridging_rounds: int,
+) -> Path:
+    """Write (atomically) every candidate pair's retrieval score and outcome (registered, or rejected with the reason)
+    and the pieces the registered pairs leave, so a graph that stayed apart can be read pair by pair."""
+    piece = components(len(names), accepted)
+    pieces = [[names[i] for i in np.flatnonzero(piece == label)] for label in sorted(set(piece.tolist()))]
+    record = {
+        "candidates_from": source,
+        "bridging_rounds": bridging_rounds,
+        "pieces": pieces,
+        "pairs": [{"names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b]),
+                   "status": "registered" if (a, b) in set(accepted) else "rejected",
+                   "reason": rejected.get((a, b))} for a, b in candidates],
+    }  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_text_atomic(path, json.dumps(record, indent=2) + "\n")
+
+
 def _register_graph(
     renderers: Sequence[Renderer], config: RegistrationConfig, work_dir: Path, console: Console, ref: int,
     min_views: int, intr: Intrinsics, given: list[tuple[int, int]], executor: Executor,
@@ -250,9 +276,11 @@ def _register_graph(
             gc.max_cycle_log_scale, gc.robust,
         )
     except PoseGraphError as e:
+        outcomes = write_pair_outcomes(work_dir / PAIR_OUTCOMES_FILE, names, scores, candidates, accepted, rejected,
+                                       source, bridged)  # fmt: skip
         raise RegistrationError(
-            f"{e} ({len(edges)} of {len(candidates)} candidate pairs registered); name overlapping pairs with "
-            f"--graph.neighbours a:b, or {SUGGESTION}"
+            f"{e} ({len(edges)} of {len(candidates)} candidate pairs registered; each pair's outcome in {outcomes}); "
+            f"name overlapping pairs with --graph.neighbours a:b, or {SUGGESTION}"
         ) from None
     timings["solve"] = time.perf_counter() - t0
     T_to_ref = solved.T_to_reference

@@ -4,6 +4,9 @@ scene renderers (three street segments, the neighbours given, an unrelated NeRF)
 
 from __future__ import annotations
 
+import json
+import re
+
 import numpy as np
 import pytest
 from rich.console import Console
@@ -341,10 +344,20 @@ def test_an_unrelated_nerf_is_rejected_and_named(street, work):
     _, renderers = street
     other = scenes.make_layout("object-centric", seed=0, num_views=16, num_test_views=1, width=W, height=H)
     renderers = [*renderers, SceneFrameRenderer.from_layout(other, "capture_a")]
+    outcomes = work / "graph_pairs.json"
     with pytest.raises(reg.RegistrationError, match=r"^capture_a: no chain of registered pairs links it to the "
-                                                    r"reference capture_0 \(3 of 6 candidate pairs registered\); name "
+                                                    r"reference capture_0 \(3 of 6 candidate pairs registered; each "
+                                                    rf"pair's outcome in {re.escape(str(outcomes))}\); name "
                                                     r"overlapping pairs with --graph.neighbours a:b"):
         reg.register(renderers, graph_config(), work, QUIET)
+    # the file says pair by pair what happened: the street's three pairs registered, every pair with the stranger not
+    record = json.loads(outcomes.read_text())
+    assert record["pieces"] == [["capture_0", "capture_1", "capture_2"], ["capture_a"]]
+    status = {tuple(p["names"]): (p["status"], p["reason"]) for p in record["pairs"]}
+    assert len(status) == 6
+    for pair, (state, reason) in status.items():
+        assert (state == "rejected") == ("capture_a" in pair), (pair, state, reason)
+        assert (reason is None) == (state == "registered"), (pair, reason)
 
 
 def test_pieces_left_by_retrieval_are_bridged(street, work):
@@ -364,7 +377,7 @@ def test_pieces_left_by_retrieval_are_bridged(street, work):
     cfg.graph.bridge_rounds = 0
     with pytest.raises(reg.RegistrationError, match=r"^capture_1, capture_2: no chain of registered pairs links "
                                                     r"them to the reference capture_0 \(0 of 0 candidate pairs "
-                                                    r"registered\)"):
+                                                    r"registered;"):
         reg.register(renderers, cfg, work, QUIET)
 
 
