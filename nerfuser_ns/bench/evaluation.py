@@ -27,7 +27,7 @@ from PIL import Image
 from rich.progress import track
 from torch import Tensor
 
-from nerfuser_ns import runs, sim3
+from nerfuser_ns import runs, runtime, sim3
 from nerfuser_ns.bench import metrics
 from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.cameras import Intrinsics
@@ -227,6 +227,7 @@ def _return_freed_memory_to_os() -> None:
     """glibc keeps freed blocks (its mmap threshold grows with use), hiding later allocations from the resident size;
     a fixed 64 KiB threshold makes every large tensor its own mapping, returned on free, and ``malloc_trim`` hands
     back the free pages inside the heap (what earlier work left there), so RSS follows live memory."""
+    runtime.install()  # its allocator setting, applied once, must not override this one later in the measured block
     try:
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(-3, 1 << 16)  # M_MMAP_THRESHOLD
