@@ -88,24 +88,35 @@ def tune_allocator(enabled: bool | None = None) -> bool:
     not available (other platforms and C libraries).
     """
     if enabled is None:
-        enabled = os.environ.get(_MALLOC_ENV, "1").strip().lower() not in ("0", "false", "no", "off")
-        enabled = enabled and not torch.cuda.is_available()
-    if not enabled or not sys.platform.startswith("linux"):
+        enabled = _env_flag(_MALLOC_ENV) and not torch.cuda.is_available()
+    return bool(enabled) and set_malloc_thresholds(_MMAP_THRESHOLD_MAX, _TRIM_THRESHOLD)
+
+
+def set_malloc_thresholds(mmap_bytes: int, trim_bytes: int) -> bool:
+    """Set glibc's mmap and trim thresholds (``mallopt``); True when both were accepted, False where the platform or
+    C library has no ``mallopt`` (it is this process-wide setting's one writer, for the runtime and the kit's
+    memory sampler alike)."""
+    if not sys.platform.startswith("linux"):
         return False
     try:
         mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):  # musl and other libcs have no mallopt
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    # mallopt returns 1 on success; both or nothing is what the docstring promises, so the order matters little
-    return bool(mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX)) and bool(mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD))
+    # mallopt returns 1 on success
+    return bool(mallopt(_M_MMAP_THRESHOLD, mmap_bytes)) and bool(mallopt(_M_TRIM_THRESHOLD, trim_bytes))
+
+
+def _env_flag(name: str) -> bool:
+    """An on/off environment switch, on unless set to 0, false, no or off."""
+    return os.environ.get(name, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
 def set_fast_path(enabled: bool | None) -> None:
     """Turn the compiled CPU hash encoding on or off at run time (None: from the environment)."""
     global _fast_path_enabled
     if enabled is None:
-        enabled = os.environ.get(_FAST_PATH_ENV, "1").strip().lower() not in ("0", "false", "no", "off")
+        enabled = _env_flag(_FAST_PATH_ENV)
     _fast_path_enabled = bool(enabled)
 
 

@@ -228,13 +228,9 @@ def _return_freed_memory_to_os() -> None:
     a fixed 64 KiB threshold makes every large tensor its own mapping, returned on free, and ``malloc_trim`` hands
     back the free pages inside the heap (what earlier work left there), so RSS follows live memory."""
     runtime.install()  # its allocator setting, applied once, must not override this one later in the measured block
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 1 << 16)  # M_MMAP_THRESHOLD
-        libc.mallopt(-1, 1 << 16)  # M_TRIM_THRESHOLD
-        libc.malloc_trim(0)
-    except (OSError, AttributeError):
-        pass  # not glibc: peaks then only show growth beyond the allocator's cache
+    if runtime.set_malloc_thresholds(1 << 16, 1 << 16):
+        ctypes.CDLL(None).malloc_trim(0)
+    # not glibc: peaks then only show growth beyond the allocator's cache
 
 
 class _PeakRSS:

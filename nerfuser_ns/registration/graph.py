@@ -192,17 +192,16 @@ def write_pair_outcomes(
 ) -> Path:
     """Write (atomically) every candidate pair's retrieval score and outcome (registered, or rejected with the reason)
     and the pieces the registered pairs leave, so a graph that stayed apart can be read pair by pair."""
-    piece = components(len(names), accepted)
+    piece, registered = components(len(names), accepted), set(accepted)
     pieces = [[names[i] for i in np.flatnonzero(piece == label)] for label in sorted(set(piece.tolist()))]
     record = {
         "candidates_from": source,
         "bridging_rounds": bridging_rounds,
         "pieces": pieces,
         "pairs": [{"names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b]),
-                   "status": "registered" if (a, b) in set(accepted) else "rejected",
+                   "status": "registered" if (a, b) in registered else "rejected",
                    "reason": rejected.get((a, b))} for a, b in candidates],
     }  # fmt: skip
-    path.parent.mkdir(parents=True, exist_ok=True)
     return write_text_atomic(path, json.dumps(record, indent=2) + "\n")
 
 
