@@ -10,7 +10,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Float
+from jaxtyping import Float, Int
 
 from nerfuser_ns import sim3
 from nerfuser_ns.cameras import Intrinsics
@@ -187,6 +187,7 @@ def graph_section(
     *,
     names: Sequence[str],
     scores: Float[np.ndarray, "k k"],
+    verified: Int[np.ndarray, "k k"] | None,
     candidates: Sequence[tuple[int, int]],
     source: str,
     pairs: dict[tuple[int, int], dict],
@@ -196,13 +197,15 @@ def graph_section(
     lengths: Float[np.ndarray, " k"],
     keypoints: dict,
 ) -> dict:
-    """The record's ``graph`` section. ``pairs`` holds each candidate pair's matching summary (3D matches,
-    hypotheses, the chosen one), ``rejected`` why a pair gave no edge, ``accepted[n]`` the pair of the pose graph's
-    edge n (``solved.edges[n]``)."""
+    """The record's ``graph`` section. ``scores`` are the NeRF pairs' tf-idf retrieval scores, ``verified`` their
+    geometric verification's inliers (None: not verified), ``pairs`` each candidate pair's matching summary (3D
+    matches, hypotheses, the chosen one), ``rejected`` why a pair gave no edge, ``accepted[n]`` the pair of the pose
+    graph's edge n (``solved.edges[n]``)."""
     edge_of = {pair: n for n, pair in enumerate(accepted)}
     edges = []
     for a, b in candidates:
-        info = {"i": a, "j": b, "names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b])}
+        info = {"i": a, "j": b, "names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b]),
+                "verified_inliers": None if verified is None else int(verified[a, b])}
         n = edge_of.get((a, b))
         if n is None:
             info.update(status="rejected", reason=rejected[(a, b)], T_j_to_i=None, weight=None, in_tree=False,

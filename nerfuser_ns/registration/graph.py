@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from rich.console import Console
 
 from nerfuser_ns import sim3
@@ -39,6 +39,7 @@ from nerfuser_ns.registration.pairwise import (
     pair_hypotheses,
     pair_summary,
     render_and_lift,
+    verified_inliers,
     view_similarity,
     views_matched,
 )
@@ -187,11 +188,13 @@ PAIR_OUTCOMES_FILE = "graph_pairs.json"
 
 
 def write_pair_outcomes(
-    path: Path, names: Sequence[str], scores: Float[np.ndarray, "k k"], candidates: Sequence[tuple[int, int]],
-    accepted: Sequence[tuple[int, int]], rejected: dict[tuple[int, int], str], source: str, bridging_rounds: int,
+    path: Path, names: Sequence[str], scores: Float[np.ndarray, "k k"], verified: Int[np.ndarray, "k k"] | None,
+    candidates: Sequence[tuple[int, int]], accepted: Sequence[tuple[int, int]], rejected: dict[tuple[int, int], str],
+    source: str, bridging_rounds: int,
 ) -> Path:
-    """Write (atomically) every candidate pair's retrieval score and outcome (registered, or rejected with the reason)
-    and the pieces the registered pairs leave, so a graph that stayed apart can be read pair by pair."""
+    """Write (atomically) every candidate pair's retrieval score (and verified inliers) and outcome (registered, or
+    rejected with the reason) and the pieces the registered pairs leave, so a graph that stayed apart can be read pair
+    by pair."""
     piece, registered = components(len(names), accepted), set(accepted)
     pieces = [[names[i] for i in np.flatnonzero(piece == label)] for label in sorted(set(piece.tolist()))]
     record = {
@@ -199,6 +202,7 @@ def write_pair_outcomes(
         "bridging_rounds": bridging_rounds,
         "pieces": pieces,
         "pairs": [{"names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b]),
+                   "verified_inliers": None if verified is None else int(verified[a, b]),
                    "status": "registered" if (a, b) in registered else "rejected",
                    "reason": rejected.get((a, b))} for a, b in candidates],
     }  # fmt: skip
@@ -214,16 +218,31 @@ def _register_graph(
     names = [r.name for r in renderers]
     k = len(renderers)
     timings: dict[str, float] = {}
+    # an earlier run's pair outcomes would describe pairs this run may not try
+    (work_dir / PAIR_OUTCOMES_FILE).unlink(missing_ok=True)
     views, feats = render_and_lift(renderers, config, work_dir, console, intr, min_views, timings, executor)
 
     t0 = time.perf_counter()
     with console.status("graph: candidate NeRF pairs from the renders' visual words"):
         similarity = view_similarity(feats, views, config)
     scores = nerf_pair_scores(similarity, gc.score_views)
-    candidates = given or candidate_nerf_pairs(scores, gc.min_similarity, gc.top_k)
+    verified = None
+    if not given and gc.verify_views > 0:
+        console.print(f"graph: verifying all {k * (k - 1) // 2} NeRF pairs (3D matches of their {gc.verify_views} most "
+                      "similar view pairs, one RANSAC SIM(3) each)")  # fmt: skip
+        rows = executor.map(verified_inliers, [(feats, views, similarity, a, config) for a in range(k)], "verify")
+        verified = np.stack(rows)
+        verified = verified + verified.T
+    # each NeRF's partners ranked by verified inliers where verified, else by the tf-idf score
+    rank = scores if verified is None else verified.astype(float)
+    candidates = given or candidate_nerf_pairs(rank, gc.min_similarity if verified is None else np.inf, gc.top_k)
     source = "neighbours given" if given else "retrieval"
-    console.print(f"graph: {len(candidates)} candidate pairs ({source}): "
-                  + ", ".join(f"{names[a]}/{names[b]} ({scores[a, b]:.2f})" for a, b in candidates))  # fmt: skip
+
+    def label(a: int, b: int) -> str:
+        return f"{names[a]}/{names[b]} (" + (f"{verified[a, b]} inliers)" if verified is not None else
+                                             f"{scores[a, b]:.2f})")  # fmt: skip
+
+    console.print(f"graph: {len(candidates)} candidate pairs ({source}): " + ", ".join(label(*p) for p in candidates))
     timings["retrieval"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -252,14 +271,14 @@ def _register_graph(
         # its outlying NeRFs first (two more per piece each round)
         linked = sorted(choice)
         positions = piece_positions(k, {pair: hypotheses[pair][n].T for pair, n in choice.items()}, views)
-        batch = bridging_pairs(scores, linked, set(matches), gc.bridge_pairs, border_ranks(k, linked, positions),
+        batch = bridging_pairs(rank, linked, set(matches), gc.bridge_pairs, border_ranks(k, linked, positions),
                                2 * (bridged + 1))  # fmt: skip
         if not batch:
             break
         bridged += 1
         pieces = len(set(components(k, sorted(choice)).tolist()))
         console.print(f"graph: the {len(choice)} registered pairs leave {pieces} pieces; bridging round {bridged}: "
-                      + ", ".join(f"{names[a]}/{names[b]} ({scores[a, b]:.2f})" for a, b in batch))  # fmt: skip
+                      + ", ".join(label(*p) for p in batch))  # fmt: skip
         candidates = candidates + batch
     timings["pairs"] = time.perf_counter() - t0
 
@@ -275,8 +294,8 @@ def _register_graph(
             gc.max_cycle_log_scale, gc.robust,
         )
     except PoseGraphError as e:
-        outcomes = write_pair_outcomes(work_dir / PAIR_OUTCOMES_FILE, names, scores, candidates, accepted, rejected,
-                                       source, bridged)  # fmt: skip
+        outcomes = write_pair_outcomes(work_dir / PAIR_OUTCOMES_FILE, names, scores, verified, candidates, accepted,
+                                       rejected, source, bridged)  # fmt: skip
         raise RegistrationError(
             f"{e} ({len(edges)} of {len(candidates)} candidate pairs registered; each pair's outcome in {outcomes}); "
             f"name overlapping pairs with --graph.neighbours a:b, or {SUGGESTION}"
@@ -298,7 +317,7 @@ def _register_graph(
     for (a, b), h in kept.items():
         overlap[a, b] = overlap[b, a] = len(h.inliers)
     section = graph_section(
-        names=names, scores=scores, candidates=candidates, source=source,
+        names=names, scores=scores, verified=verified, candidates=candidates, source=source,
         pairs={pair: {**pair_summary(feats, matches[pair], hypotheses[pair], choice.get(pair), config),
                       "self_check_ncc": json_float(pair_checks[pair].score) if pair in pair_checks else None}
                for pair in candidates},

@@ -276,6 +276,24 @@ def _distinct(T: np.ndarray, others: Sequence[Hypothesis], centre: np.ndarray, t
     return True
 
 
+def ransac_sim3(
+    points_b: Float[np.ndarray, "k 3"], points_a: Float[np.ndarray, "k 3"], max_error: float, seed: int = 0
+) -> tuple[Float[np.ndarray, "4 4"], Bool[np.ndarray, " k"]] | None:
+    """One LO-RANSAC SIM(3) ``T_b->a`` (pycolmap) of the matches and its inlier mask; None when none is found (fewer
+    than three matches included)."""
+    if len(points_a) < 3:
+        return None
+    options = pycolmap.RANSACOptions()
+    options.max_error = max_error
+    options.min_inlier_ratio = 0.01
+    options.random_seed = seed
+    result = pycolmap.estimate_sim3d_robust(np.ascontiguousarray(points_b), np.ascontiguousarray(points_a), options)
+    if result is None:
+        return None
+    T = sim3.to_homogeneous(np.asarray(result["tgt_from_src"].matrix(), dtype=np.float64))
+    return T, np.asarray(result["inlier_mask"], dtype=bool)
+
+
 def sim3_hypotheses(
     points_b: Float[np.ndarray, "k 3"], points_a: Float[np.ndarray, "k 3"], max_error: float, cfg: KnownGeometryConfig,
     seed: int = 0,
@@ -292,18 +310,12 @@ def sim3_hypotheses(
     for _attempt in range(cfg.max_hypotheses + 2):
         if len(found) >= cfg.max_hypotheses or len(remaining) < max(cfg.min_inliers, 3):
             break
-        options = pycolmap.RANSACOptions()
-        options.max_error = max_error
-        options.min_inlier_ratio = 0.01
-        options.random_seed = seed
-        result = pycolmap.estimate_sim3d_robust(np.ascontiguousarray(points_b[remaining]),
-                                                np.ascontiguousarray(points_a[remaining]), options)  # fmt: skip
+        result = ransac_sim3(points_b[remaining], points_a[remaining], max_error, seed)
         if result is None:
             break
-        mask = np.asarray(result["inlier_mask"], dtype=bool)
+        T, mask = result
         if mask.sum() < cfg.min_inliers:
             break
-        T = sim3.to_homogeneous(np.asarray(result["tgt_from_src"].matrix(), dtype=np.float64))
         # every match the hypothesis explains, not only RANSAC's inliers among the remaining ones, and the transform
         # refitted to all of them: competing hypotheses are then equally precise when the self-check compares them
         inliers = np.flatnonzero(np.linalg.norm(sim3.transform_points(T, points_b) - points_a, axis=-1) <= max_error)

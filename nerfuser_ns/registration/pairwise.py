@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float, Int
 from rich.console import Console
 
 from nerfuser_ns import sim3
@@ -32,6 +33,7 @@ from nerfuser_ns.registration.known_geometry import (
     Matches3D,
     lift_keypoints,
     match_pair,
+    ransac_sim3,
     sim3_hypotheses,
 )
 from nerfuser_ns.registration.render_cache import ViewSet, check_kept_views, render_views_cached
@@ -74,6 +76,30 @@ def match_nerfs(
     view_pairs = [(i, j) for i, j in candidate_pairs(similarity[a][b], kg.candidate_views, kg.exhaustive_max_pairs)
                   if views[a].kept[i] and views[b].kept[j]]  # fmt: skip
     return match_pair(feats[a], feats[b], view_pairs, kg.ratio, a, b)
+
+
+def most_similar_view_pairs(similarity: Float[np.ndarray, "na nb"], count: int) -> list[tuple[int, int]]:
+    """The ``count`` most similar view pairs (i of a, j of b), most similar first (left-out views, -inf, never)."""
+    order = np.argsort(-similarity, axis=None, kind="stable")[:count]
+    return [(int(i), int(j)) for i, j in zip(*np.unravel_index(order, similarity.shape), strict=True)
+            if np.isfinite(similarity[i, j])]  # fmt: skip
+
+
+def verified_inliers(
+    feats: Sequence[LiftedFeatures], views: Sequence[ViewSet], similarity: list[list[np.ndarray]], a: int,
+    config: RegistrationConfig,
+) -> Int[np.ndarray, " k"]:
+    """Geometric verification of NeRF a against every later NeRF b (a task of the graph mode): the inliers of one
+    LO-RANSAC SIM(3) on the 3D matches of their ``verify_views`` most similar view pairs (0 for b <= a)."""
+    kg, k = config.known_geometry, len(feats)
+    out = np.zeros(k, dtype=int)
+    for b in range(a + 1, k):
+        m = match_pair(feats[a], feats[b], most_similar_view_pairs(similarity[a][b], config.graph.verify_views),
+                       kg.ratio, a, b)  # fmt: skip
+        fit = ransac_sim3(feats[b].points[m.ib], feats[a].points[m.ia], ransac_max_error(feats, m, config),
+                          config.sfm.seed)  # fmt: skip
+        out[b] = 0 if fit is None else int(fit[1].sum())
+    return out
 
 
 def matches_per_pair(

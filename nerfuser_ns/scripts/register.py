@@ -181,17 +181,18 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
 
 
 def _print_graph(graph: dict, console: Console) -> None:
-    """The pose graph: per candidate pair its retrieval score, inliers, status and residual after the solve; the
-    cycles."""
+    """The pose graph: per candidate pair its retrieval score and verified inliers, its registration's inliers, status
+    and residual after the solve; the cycles."""
     cand = graph["candidates"]
     table = Table(title=f"Pose graph: {len(cand['pairs'])} candidate pairs ({cand['source']})")
-    for col in ("pair", "score", "inliers", "status", "r res (deg)", "t res", "|log s| res", "reason"):
+    for col in ("pair", "score", "verified", "inliers", "status", "r res (deg)", "t res", "|log s| res", "reason"):
         table.add_column(col, justify="left" if col in ("pair", "status", "reason") else "right")
     colour = {"kept": "green", "unverified": "yellow", "dropped": "red", "rejected": "red"}
     for e in graph["edges"]:
         res = e["residual"] or {}
         inliers = None if e["chosen"] is None else e["hypotheses"][e["chosen"]]["inliers"]
-        table.add_row(" / ".join(e["names"]), _fmt(e["retrieval_score"], ".2f"), _fmt(inliers, "d"),
+        table.add_row(" / ".join(e["names"]), _fmt(e["retrieval_score"], ".2f"), _fmt(e.get("verified_inliers"), "d"),
+                      _fmt(inliers, "d"),
                       f"[{colour[e['status']]}]{e['status']}[/]", _fmt(res.get("rotation_deg"), ".3f"),
                       _fmt(res.get("translation"), ".2e"), _fmt(res.get("log_scale"), ".2e"), e["reason"])  # fmt: skip
     console.print(table)

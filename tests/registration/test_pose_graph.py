@@ -15,8 +15,8 @@ from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
+from nerfuser_ns.registration import pairwise, render_cache, retrieval
 from nerfuser_ns.registration import pose_graph as pg
-from nerfuser_ns.registration import retrieval
 from nerfuser_ns.registration.distributed import SerialExecutor
 from nerfuser_ns.scripts.register import print_summary
 
@@ -195,6 +195,12 @@ def test_nerf_pair_scores_and_candidates():
     assert retrieval.candidate_nerf_pairs(scores, min_score=2.0, top_k=2) == [(0, 1), (0, 2), (1, 2)]
 
 
+def test_most_similar_view_pairs_skip_left_out_views():
+    sim = np.array([[0.2, 0.9, -np.inf], [0.5, -np.inf, 0.7]])
+    assert pairwise.most_similar_view_pairs(sim, 3) == [(0, 1), (1, 2), (1, 0)]
+    assert pairwise.most_similar_view_pairs(sim, 10) == [(0, 1), (1, 2), (1, 0), (0, 0)]
+
+
 def test_bridging_pairs_join_the_pieces_by_their_best_untried_partners():
     """Each piece of the registered graph asks for its best-scoring untried pairs to NeRFs outside it; nothing once
     the graph is connected or every joining pair was tried."""
@@ -319,6 +325,29 @@ def test_three_street_nerfs_by_retrieval(street, work):
     assert "Pose graph: 3 candidate pairs (retrieval)" in text and "cycles: 1 of 1 within the thresholds" in text
 
 
+def test_verification_ranks_a_drive_blocks_neighbours_first(tmp_path):
+    """Five blocks of a drive, whose generated textures repeat along the street: geometric verification gives each
+    block's neighbours the most inliers, and blocks three or more apart fewer than any neighbouring pair."""
+    n = 5
+    layout = scenes.make_layout("drive", seed=0, num_captures=n, num_views=scenes.DRIVE_RIG_CAMERAS * 12,
+                                num_test_views=1, width=160, height=120)  # fmt: skip
+    renderers = [SceneFrameRenderer.from_layout(layout, c.name) for c in layout.captures]
+    cfg = graph_config()
+    cfg.sampling.width, cfg.sampling.height, cfg.sampling.max_training_poses = 160, 120, 12
+    ref, min_views, intr = render_cache.check_inputs(renderers, cfg)
+    views, feats = pairwise.render_and_lift(renderers, cfg, tmp_path, QUIET, intr, min_views, {})
+    similarity = pairwise.view_similarity(feats, views, cfg)
+    rows = [pairwise.verified_inliers(feats, views, similarity, a, cfg) for a in range(n)]
+    inliers = np.stack(rows) + np.stack(rows).T
+    assert all((r[: a + 1] == 0).all() for a, r in enumerate(rows))
+    for a in range(n):
+        best = int(np.argmax(np.where(np.arange(n) == a, -1, inliers[a])))
+        assert abs(best - a) == 1, (a, inliers[a])
+    adjacent = [inliers[a, a + 1] for a in range(n - 1)]
+    far = [inliers[a, b] for a in range(n) for b in range(a + 3, n)]
+    assert max(far) < min(adjacent), (adjacent, far)
+
+
 def test_neighbours_given_form_a_tree_in_the_chosen_reference(street, work):
     """Only the pairs named are registered (by name or index); a tree: both edges unverified, no cycle; the result
     in the frame of the reference chosen (the middle segment)."""
@@ -363,7 +392,7 @@ def test_an_unrelated_nerf_is_rejected_and_named(street, work):
 def test_pieces_left_by_retrieval_are_bridged(street, work):
     """With no candidate from retrieval (``top_k`` 0, an unreachable threshold) every NeRF is a piece of its own: one
     bridging round registers each piece's best partners and the graph solves as with retrieval; with no bridging
-    round the NeRFs stay apart and the registration says which."""
+    round the NeRFs stay apart and the registration says which (its pair outcomes gone after the next success)."""
     layout, renderers = street
     names = [r.name for r in renderers]
     cfg = graph_config()
@@ -379,6 +408,11 @@ def test_pieces_left_by_retrieval_are_bridged(street, work):
                                                     r"them to the reference capture_0 \(0 of 0 candidate pairs "
                                                     r"registered;"):
         reg.register(renderers, cfg, work, QUIET)
+    # the failure's pair outcomes do not outlive it: a later run in the same folder that registers removes them
+    assert (work / "graph_pairs.json").is_file()
+    cfg.graph.bridge_rounds = 1
+    reg.register(renderers, cfg, work, QUIET)
+    assert not (work / "graph_pairs.json").exists()
 
 
 @pytest.mark.parametrize(
