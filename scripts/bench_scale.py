@@ -2,8 +2,9 @@
 sfm``, the paper's default pipeline) as a drive gets longer, on ground-truth renderers (no trained NeRFs).
 
 The scene is the drive layout (``nerfuser_ns.bench.scenes.make_drive``: a car's 8-camera roof rig along a street, one
-NeRF per block of rig stops) extended to N blocks, N from ``--blocks``. Each NeRF is a ground-truth scene renderer
-(exact colour and depth: a perfect NeRF) of its block in the block's own frame. By default each block's renderer holds
+NeRF per block of rig stops) of ``--world-blocks`` blocks (default: the largest N); each case registers its first N
+blocks, N from ``--blocks``. Each NeRF is a ground-truth scene renderer (exact colour and depth: a perfect NeRF) of
+its block in the block's own frame. By default each block's renderer holds
 only the street within ``--crop-m`` metres of its cameras: a ray-cast's cost grows with the number of primitives, so
 without the crop every render of a long drive costs more than one of a short drive (measured: 0.75 s per 240 x 180
 render at 8 blocks, 3.4 s at 32 blocks), which a trained NeRF's would not.
@@ -91,6 +92,12 @@ class BenchScale:
     """Render height in pixels."""
     stops: int = 12
     """Rig stops per block (8 cameras each); 12 is the drive layout's benchmark value."""
+    world_blocks: int | None = None
+    """Blocks of the one drive that every case takes its first N blocks from (default: the largest of --blocks), so
+    that a block and its street are the same whatever N. A drive built for each N instead gives a short drive's
+    blocks less street within their crop (an 8-block street, 80 m, is shorter than a block's 86 m crop window):
+    fewer primitives per render, cheaper pair tasks, and a time ratio that mixes the scene's growth with the
+    pipeline's."""
     crop_m: float = 40.0
     """Each block's renderer holds the street within this many metres (along it) of the block's cameras (0: the whole
     street): render cost and memory independent of the drive's length. What changes: views along the street show the
@@ -129,11 +136,15 @@ class BenchScale:
             out.append("graph-wrong-edge")
         return out
 
+    def world(self) -> int:
+        """Blocks of the drive the cases are taken from."""
+        return self.world_blocks or max(self.blocks)
+
     def settings(self) -> dict:
         """What a result depends on (``--resume`` keeps cases run under the same)."""
         skip = {"blocks", "modes", "ray", "inject_wrong_edge", "work_dir", "output", "report", "resume", "verbose",
                 "memory_interval_s"}  # fmt: skip
-        return {k: v for k, v in dataclasses.asdict(self).items() if k not in skip}
+        return {**{k: v for k, v in dataclasses.asdict(self).items() if k not in skip}, "world_blocks": self.world()}
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -141,10 +152,14 @@ class BenchScale:
 
 
 def drive_layout(cfg: BenchScale, n: int):
+    """The first ``n`` blocks of the drive of ``cfg.world()`` blocks (its world and test views unchanged)."""
     from nerfuser_ns.bench import scenes
 
-    return scenes.make_layout("drive", seed=cfg.seed, num_captures=n, num_views=scenes.DRIVE_RIG_CAMERAS * cfg.stops,
-                              num_test_views=n - 1, width=192, height=144)  # fmt: skip
+    world = max(cfg.world(), n)
+    layout = scenes.make_layout("drive", seed=cfg.seed, num_captures=world,
+                                num_views=scenes.DRIVE_RIG_CAMERAS * cfg.stops, num_test_views=world - 1, width=192,
+                                height=144)  # fmt: skip
+    return dataclasses.replace(layout, captures=layout.captures[:n])
 
 
 def crop_scene(scene, x_lo: float, x_hi: float):
@@ -448,7 +463,10 @@ def markdown(report: dict) -> str:
         f"`{report['command']}`", "",
         f"On {report['machine']['platform']}, {report['machine']['cpus']} CPUs, OMP_NUM_THREADS="
         f"{report['machine']['omp_num_threads']}, torch {report['machine']['torch_threads']} threads. Drive layout "
-        f"(seed {s['seed']}, {s['stops']} rig stops of 8 cameras per block), ground-truth renderers (each block's "
+        f"(seed {s['seed']}, {s['stops']} rig stops of 8 cameras per block"
+        + (f"; every case the first N blocks of one {s['world_blocks']}-block drive" if s.get("world_blocks") else
+           "; a drive built for each N")
+        + "), ground-truth renderers (each block's "
         + (f"street within {s['crop_m']:g} m of its cameras" if s["crop_m"] > 0 else "whole street")
         + f"), {s['renders']} training poses rendered per NeRF at {s['width']}x{s['height']}, self-check "
         f"{s['self_check_views']} views; sampling seed {s['sampling_seed']}, SfM seed {s['sfm_seed']}; the graph's "
@@ -577,9 +595,9 @@ def write(cfg: BenchScale, results: list[dict]) -> dict:
 def main(cfg: BenchScale) -> None:
     console = Console()
     bad = [m for m in cfg.modes if m not in ("graph", "sfm")]
-    if bad or min(cfg.blocks, default=0) < 2 or cfg.renders < 2 or cfg.stops < 1:
+    if bad or min(cfg.blocks, default=0) < 2 or cfg.renders < 2 or cfg.stops < 1 or cfg.world() < max(cfg.blocks):
         raise SystemExit(f"bench_scale: --modes takes graph and sfm (got {bad}), --blocks >= 2, --renders >= 2, "
-                         "--stops >= 1")  # fmt: skip
+                         "--stops >= 1, --world-blocks >= the largest of --blocks")  # fmt: skip
     cases = cfg.cases()
     if "graph-ray" in cases and importlib.util.find_spec("ray") is None:
         console.print('[yellow]bench_scale: ray is not importable (pip install "nerfuser_ns[city]"): the Ray case is '
