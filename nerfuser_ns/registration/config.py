@@ -207,8 +207,8 @@ class GraphConfig:
     """A NeRF pair's retrieval score: the mean of its this-many most similar view pairs (tf-idf cosine)."""
     verify_views: int = 24
     """Geometric verification of retrieval: every NeRF pair's this-many most similar view pairs are matched in 3D
-    and one LO-RANSAC SIM(3) is fitted; its inlier count ranks each NeRF's partners (about 0.15 s per NeRF pair on
-    two CPU cores, so quadratic in the NeRFs: ~2 min at 32). Where the captures share textures (generated scenes,
+    and one LO-RANSAC SIM(3) is fitted; its inlier count ranks each NeRF's partners (about 0.17 s per NeRF pair on
+    two CPU cores, so quadratic in the NeRFs: 83 s at 32). Where the captures share textures (generated scenes,
     repeated facades) the tf-idf score ranks true neighbours anywhere; the inliers count only content that lies the
     same way in 3D. 0: rank by the tf-idf score alone."""
     min_similarity: float = 0.8

@@ -230,7 +230,7 @@ def _register_graph(
     if not given and gc.verify_views > 0:
         console.print(f"graph: verifying all {k * (k - 1) // 2} NeRF pairs (3D matches of their {gc.verify_views} most "
                       "similar view pairs, one RANSAC SIM(3) each)")  # fmt: skip
-        rows = executor.map(verified_inliers, [(feats, views, similarity, a, config) for a in range(k)], "verify")
+        rows = executor.map(verified_inliers, [(feats, similarity, a, config) for a in range(k)], "verify")
         verified = np.stack(rows)
         verified = verified + verified.T
     # each NeRF's partners ranked by verified inliers where verified, else by the tf-idf score

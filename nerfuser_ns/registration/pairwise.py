@@ -86,11 +86,11 @@ def most_similar_view_pairs(similarity: Float[np.ndarray, "na nb"], count: int) 
 
 
 def verified_inliers(
-    feats: Sequence[LiftedFeatures], views: Sequence[ViewSet], similarity: list[list[np.ndarray]], a: int,
-    config: RegistrationConfig,
+    feats: Sequence[LiftedFeatures], similarity: list[list[np.ndarray]], a: int, config: RegistrationConfig
 ) -> Int[np.ndarray, " k"]:
     """Geometric verification of NeRF a against every later NeRF b (a task of the graph mode): the inliers of one
-    LO-RANSAC SIM(3) on the 3D matches of their ``verify_views`` most similar view pairs (0 for b <= a)."""
+    LO-RANSAC SIM(3) on the 3D matches of their ``verify_views`` most similar view pairs (0 for b <= a; left-out
+    views, similarity -inf, are never matched)."""
     kg, k = config.known_geometry, len(feats)
     out = np.zeros(k, dtype=int)
     for b in range(a + 1, k):

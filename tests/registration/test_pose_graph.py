@@ -337,7 +337,7 @@ def test_verification_ranks_a_drive_blocks_neighbours_first(tmp_path):
     ref, min_views, intr = render_cache.check_inputs(renderers, cfg)
     views, feats = pairwise.render_and_lift(renderers, cfg, tmp_path, QUIET, intr, min_views, {})
     similarity = pairwise.view_similarity(feats, views, cfg)
-    rows = [pairwise.verified_inliers(feats, views, similarity, a, cfg) for a in range(n)]
+    rows = [pairwise.verified_inliers(feats, similarity, a, cfg) for a in range(n)]
     inliers = np.stack(rows) + np.stack(rows).T
     assert all((r[: a + 1] == 0).all() for a, r in enumerate(rows))
     for a in range(n):
