@@ -333,7 +333,7 @@ def test_verification_ranks_a_drive_blocks_neighbours_first(tmp_path):
                                 num_test_views=1, width=160, height=120)  # fmt: skip
     renderers = [SceneFrameRenderer.from_layout(layout, c.name) for c in layout.captures]
     cfg = graph_config()
-    cfg.sampling.width, cfg.sampling.height, cfg.sampling.max_training_poses = 160, 120, 12
+    cfg.sampling.width, cfg.sampling.height, cfg.sampling.max_training_poses = 160, 120, 8
     ref, min_views, intr = render_cache.check_inputs(renderers, cfg)
     views, feats = pairwise.render_and_lift(renderers, cfg, tmp_path, QUIET, intr, min_views, {})
     similarity = pairwise.view_similarity(feats, views, cfg)
@@ -390,29 +390,26 @@ def test_an_unrelated_nerf_is_rejected_and_named(street, work):
 
 
 def test_pieces_left_by_retrieval_are_bridged(street, work):
-    """With no candidate from retrieval (``top_k`` 0, an unreachable threshold) every NeRF is a piece of its own: one
-    bridging round registers each piece's best partners and the graph solves as with retrieval; with no bridging
-    round the NeRFs stay apart and the registration says which (its pair outcomes gone after the next success)."""
+    """With no candidate from retrieval (``top_k`` 0, an unreachable threshold) every NeRF is a piece of its own: with
+    no bridging round they stay apart and the registration says which, writing the pair outcomes; one bridging round
+    registers each piece's best partners, the graph solves as with retrieval, and the failure's outcomes are gone."""
     layout, renderers = street
     names = [r.name for r in renderers]
     cfg = graph_config()
-    cfg.graph.top_k, cfg.graph.min_similarity = 0, 2.0
+    cfg.graph.top_k, cfg.graph.min_similarity, cfg.graph.bridge_rounds = 0, 2.0, 0
+    with pytest.raises(reg.RegistrationError, match=r"^capture_1, capture_2: no chain of registered pairs links "
+                                                    r"them to the reference capture_0 \(0 of 0 candidate pairs "
+                                                    r"registered;"):
+        reg.register(renderers, cfg, work, QUIET)
+    assert json.loads((work / "graph_pairs.json").read_text())["pairs"] == []
+    cfg.graph.bridge_rounds = 1
     record = reg.register(renderers, cfg, work, QUIET).to_record()
+    assert not (work / "graph_pairs.json").exists()
     g = record["graph"]
     assert g["bridging_rounds"] == 1 and len(g["candidates"]["pairs"]) == 3
     for i in (1, 2):
         err = sim3.sim3_errors(np.array(record["nerfs"][i]["T_to_reference"]), truth_in(layout, names[0], names[i]))
         assert err.r_err_deg < 0.1 and err.t_err < 0.005 and err.s_err < 0.005, (i, err)
-    cfg.graph.bridge_rounds = 0
-    with pytest.raises(reg.RegistrationError, match=r"^capture_1, capture_2: no chain of registered pairs links "
-                                                    r"them to the reference capture_0 \(0 of 0 candidate pairs "
-                                                    r"registered;"):
-        reg.register(renderers, cfg, work, QUIET)
-    # the failure's pair outcomes do not outlive it: a later run in the same folder that registers removes them
-    assert (work / "graph_pairs.json").is_file()
-    cfg.graph.bridge_rounds = 1
-    reg.register(renderers, cfg, work, QUIET)
-    assert not (work / "graph_pairs.json").exists()
 
 
 @pytest.mark.parametrize(
@@ -471,7 +468,7 @@ def test_ray_tasks_give_the_serial_result(street, work, tmp_path):
     assert [n["T_to_reference"] for n in distributed["nerfs"]] == [n["T_to_reference"] for n in serial["nerfs"]]
     tasks = {kind: len(t) for kind, t in serial["graph"].pop("tasks_s").items()}
     assert {kind: len(t) for kind, t in distributed["graph"].pop("tasks_s").items()} == tasks
-    assert tasks == {"render": 2, "lift": 2, "pair": 1}
+    assert tasks == {"render": 2, "lift": 2, "verify": 2, "pair": 1}
     assert distributed["graph"] == serial["graph"]
     assert distributed["reused"]["renders"] == [False] * 2
     assert all((tmp_path / "renders" / n["render_folder"].rsplit("/", 1)[-1] / "depth.npz").is_file()
