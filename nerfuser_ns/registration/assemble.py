@@ -183,6 +183,14 @@ def _residual(r: Residual) -> dict:
             "log_scale": json_float(r.log_scale)}  # fmt: skip
 
 
+def retrieval_fields(
+    scores: Float[np.ndarray, "k k"], verified: Int[np.ndarray, "k k"] | None, a: int, b: int
+) -> dict:
+    """What retrieval said of the NeRF pair (a, b): its tf-idf score and verified inliers (None: not verified)."""
+    return {"retrieval_score": json_float(scores[a, b]),
+            "verified_inliers": None if verified is None else int(verified[a, b])}  # fmt: skip
+
+
 def graph_section(
     *,
     names: Sequence[str],
@@ -204,8 +212,7 @@ def graph_section(
     edge_of = {pair: n for n, pair in enumerate(accepted)}
     edges = []
     for a, b in candidates:
-        info = {"i": a, "j": b, "names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b]),
-                "verified_inliers": None if verified is None else int(verified[a, b])}
+        info = {"i": a, "j": b, "names": [names[a], names[b]], **retrieval_fields(scores, verified, a, b)}
         n = edge_of.get((a, b))
         if n is None:
             info.update(status="rejected", reason=rejected[(a, b)], T_j_to_i=None, weight=None, in_tree=False,

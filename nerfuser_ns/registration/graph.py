@@ -17,7 +17,7 @@ from rich.console import Console
 from nerfuser_ns import sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.registration.assemble import build_known_geometry_result, graph_section
+from nerfuser_ns.registration.assemble import build_known_geometry_result, graph_section, retrieval_fields
 from nerfuser_ns.registration.config import (
     SUGGESTION,
     RegistrationConfig,
@@ -39,7 +39,7 @@ from nerfuser_ns.registration.pairwise import (
     pair_hypotheses,
     pair_summary,
     render_and_lift,
-    verified_inliers,
+    verify_pairs,
     view_similarity,
     views_matched,
 )
@@ -201,8 +201,7 @@ def write_pair_outcomes(
         "candidates_from": source,
         "bridging_rounds": bridging_rounds,
         "pieces": pieces,
-        "pairs": [{"names": [names[a], names[b]], "retrieval_score": json_float(scores[a, b]),
-                   "verified_inliers": None if verified is None else int(verified[a, b]),
+        "pairs": [{"names": [names[a], names[b]], **retrieval_fields(scores, verified, a, b),
                    "status": "registered" if (a, b) in registered else "rejected",
                    "reason": rejected.get((a, b))} for a, b in candidates],
     }  # fmt: skip
@@ -230,9 +229,7 @@ def _register_graph(
     if not given and gc.verify_views > 0:
         console.print(f"graph: verifying all {k * (k - 1) // 2} NeRF pairs (3D matches of their {gc.verify_views} most "
                       "similar view pairs, one RANSAC SIM(3) each)")  # fmt: skip
-        rows = executor.map(verified_inliers, [(feats, similarity, a, config) for a in range(k)], "verify")
-        verified = np.stack(rows)
-        verified = verified + verified.T
+        verified = verify_pairs(feats, similarity, config, executor)
     # each NeRF's partners ranked by verified inliers where verified, else by the tf-idf score
     rank = scores if verified is None else verified.astype(float)
     candidates = given or candidate_nerf_pairs(rank, gc.min_similarity if verified is None else np.inf, gc.top_k)

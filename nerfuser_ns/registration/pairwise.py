@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Float, Int
+from jaxtyping import Int
 from rich.console import Console
 
 from nerfuser_ns import sim3
@@ -41,6 +41,7 @@ from nerfuser_ns.registration.retrieval import (
     assign_words,
     build_vocabulary,
     candidate_pairs,
+    most_similar_view_pairs,
     tfidf_similarity,
     view_histograms,
 )
@@ -78,13 +79,6 @@ def match_nerfs(
     return match_pair(feats[a], feats[b], view_pairs, kg.ratio, a, b)
 
 
-def most_similar_view_pairs(similarity: Float[np.ndarray, "na nb"], count: int) -> list[tuple[int, int]]:
-    """The ``count`` most similar view pairs (i of a, j of b), most similar first (left-out views, -inf, never)."""
-    order = np.argsort(-similarity, axis=None, kind="stable")[:count]
-    return [(int(i), int(j)) for i, j in zip(*np.unravel_index(order, similarity.shape), strict=True)
-            if np.isfinite(similarity[i, j])]  # fmt: skip
-
-
 def verified_inliers(
     feats: Sequence[LiftedFeatures], similarity: list[list[np.ndarray]], a: int, config: RegistrationConfig
 ) -> Int[np.ndarray, " k"]:
@@ -100,6 +94,18 @@ def verified_inliers(
                           config.sfm.seed)  # fmt: skip
         out[b] = 0 if fit is None else int(fit[1].sum())
     return out
+
+
+def verify_pairs(
+    feats: Sequence[LiftedFeatures], similarity: list[list[np.ndarray]], config: RegistrationConfig,
+    executor: Executor | None = None,
+) -> Int[np.ndarray, "k k"]:
+    """Every NeRF pair's verified inliers (:func:`verified_inliers`, one task per NeRF on ``executor``, default: in
+    this process), symmetric, 0 on the diagonal."""
+    executor = executor or SerialExecutor()
+    rows = executor.map(verified_inliers, [(feats, similarity, a, config) for a in range(len(feats))], "verify")
+    upper = np.stack(rows)
+    return upper + upper.T
 
 
 def matches_per_pair(

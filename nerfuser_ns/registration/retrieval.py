@@ -78,6 +78,13 @@ def candidate_pairs(
     return sorted(pairs)
 
 
+def most_similar_view_pairs(similarity: Float[np.ndarray, "na nb"], count: int) -> list[tuple[int, int]]:
+    """The ``count`` most similar view pairs (i of a, j of b), most similar first (left-out views, -inf, never)."""
+    order = np.argsort(-similarity, axis=None, kind="stable")[:count]
+    return [(int(i), int(j)) for i, j in zip(*np.unravel_index(order, similarity.shape), strict=True)
+            if np.isfinite(similarity[i, j])]  # fmt: skip
+
+
 def nerf_pair_scores(similarity: Sequence[Sequence[np.ndarray]], top: int) -> Float[np.ndarray, "k k"]:
     """How much two NeRFs' renders look alike: the mean of their ``top`` most similar view pairs (``-inf`` entries,
     views left out, do not count; 0 when none is left). Symmetric, with 0 on the diagonal."""
