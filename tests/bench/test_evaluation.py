@@ -144,8 +144,11 @@ def test_measure_render_cost(tiny, models):
     # Paired per repeat, the median ratio stays near the ratio of the median times (not equal: other pairing; on a
     # loaded machine single repeats swing by 2x, hence 5 repeats and a loose bound).
     assert cost.ratio == pytest.approx(cost.fused_s / sum(cost.sub_s), rel=1.0)
-    # the fused pass runs both sub-models' samplers and fields, so it cannot be cheaper than the cheaper of them
-    assert cost.fused_s > min(cost.sub_s)
+    # Every ray is rendered by one NeRF at least. In this scene the distance test gives each ray to one NeRF alone
+    # (139 + 117 of 256 seen), so the fused pass may cost less than a sub-model's full pass; what it cannot undercut
+    # is a sub-model's pass on the rays the fused model queries it on.
+    assert len(cost.used_rays) == 2 and sum(cost.used_rays) >= cost.num_rays
+    assert cost.fused_s > max(cost.sub_used_s)
     assert cost.fused_peak_mib >= 0 and set(cost.as_dict()) >= {"ratio", "fused_s", "sub_s", "fused_peak_mib"}
 
 
