@@ -57,6 +57,10 @@ class BenchAppearance:
     jitter: float = 0.38
     """Per-capture appearance spread in stops (exposure 2^u, u ~ U(-j, j); red and blue gains 2^v, v ~ U(-j/2, j/2)):
     0.38 stops is about +-30% gain."""
+    bracket: bool = False
+    """Spread the captures over the jitter's range instead of drawing them (``LayoutParams.appearance_bracket``):
+    with two captures, one at -jitter stops and red / blue 2^(-+jitter/2), the other at +jitter and the opposite
+    white balance (the largest difference the jitter allows)."""
     root: Path = Path("outputs/bench/appearance")
     """Where the jittered scene, its runs, and both registrations go."""
     max_num_iterations: int = 2000
@@ -137,7 +141,8 @@ def write_report(path: Path, data: dict) -> None:
         f"Command: `{data['command']}` ({data['date']}; {data['machine']}).",
         "",
         f"Scene: {plain['scene']} (plain) and the same layout and seed with appearance jitter {data['jitter']} stops "
-        f"({jit['scene']}); NeRFs trained with the same settings ({data['max_num_iterations']} steps, seed "
+        f"({'bracketed: the captures spread over its range' if data.get('bracket') else 'drawn per capture'}; "
+        f"{jit['scene']}); NeRFs trained with the same settings ({data['max_num_iterations']} steps, seed "
         f"{data['train_seed']}); each pair registered by `ns-nerfuser-register` with its defaults but "
         f"`--sampling.size {data['registration_size']} --sampling.max-training-poses {data['registration_poses']}`, "
         "which fits the colour maps on the self-check's cross-renders; blends with the estimated transforms on "
@@ -176,7 +181,7 @@ def main(cfg: BenchAppearance) -> None:
     scene_dir, runs_dir = cfg.root / "scene", cfg.root / "runs"
     console.print(f"[bold]jittered scene: {layout} seed {seed}, appearance jitter {cfg.jitter} stops -> {scene_dir}")
     built = generate_scene(scene_dir, layout, supersample=2, appearance_jitter=cfg.jitter,
-                           **benchmark_params(layout, seed))  # fmt: skip
+                           appearance_bracket=cfg.bracket, **benchmark_params(layout, seed))  # fmt: skip
     torch.set_num_threads(max(1, os.cpu_count() or 1))
     train_captures(scene_dir, runs_dir, [c.name for c in built.captures], max_num_iterations=cfg.max_num_iterations,
                    seed=cfg.train_seed, log=console.print)  # fmt: skip
@@ -185,7 +190,8 @@ def main(cfg: BenchAppearance) -> None:
         "command": "python scripts/bench_appearance.py " + " ".join(sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "machine": f"{platform.platform()}, {os.cpu_count()} CPUs, torch {torch.__version__}",
-        "jitter": cfg.jitter, "max_num_iterations": cfg.max_num_iterations, "train_seed": cfg.train_seed,
+        "jitter": cfg.jitter, "bracket": cfg.bracket, "max_num_iterations": cfg.max_num_iterations,
+        "train_seed": cfg.train_seed,
         "registration_size": cfg.registration_size, "registration_poses": cfg.registration_poses,
         "max_test_views": cfg.max_test_views,
     }  # fmt: skip

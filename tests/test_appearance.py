@@ -80,6 +80,13 @@ def test_generated_captures_get_their_own_exposure_and_white_balance(tmp_path):
     np.testing.assert_array_equal(jittered.captures[0].c2w_world, plain.captures[0].c2w_world)  # same cameras
     with pytest.raises(ValueError, match="appearance_jitter"):
         scenes.make_layout("object-centric", seed=2, appearance_jitter=-1.0, **small)
+    # bracketed: the two captures at the ends of the range, opposite white balance; no jitter is an error
+    ends = scenes.make_layout("object-centric", seed=2, appearance_jitter=0.5, appearance_bracket=True, **small)
+    low, high = (c.appearance_gains for c in ends.captures)
+    np.testing.assert_allclose(high / low, [2**1.5, 2**1.0, 2**0.5])  # exposure +1 stop, red +0.5, blue -0.5
+    assert "appearance_bracket" not in jittered.params and ends.params["appearance_bracket"] is True
+    with pytest.raises(ValueError, match="appearance_bracket"):
+        scenes.make_layout("object-centric", seed=2, appearance_bracket=True, **small)
 
     # Written images carry the gains; the estimate from the same view, neutral vs recorded, inverts them.
     out = scenes.write_scene(jittered, tmp_path / "scene", supersample=1)

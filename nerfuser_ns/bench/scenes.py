@@ -777,6 +777,10 @@ class LayoutParams:
     """Per training capture its own exposure and white balance, as captures filmed at different times have: exposure
     ``2^u`` stops with ``u ~ U(-j, j)``, red and blue gains ``2^v``, ``v ~ U(-j/2, j/2)`` (green 1), on linear RGB.
     0: every capture as rendered (the test capture always is)."""
+    appearance_bracket: bool = False
+    """Spread the captures' appearances over the jitter's range instead of drawing them: capture ``i`` of ``n`` gets
+    ``u_i = j (2 i / (n - 1) - 1)`` stops of exposure, red ``2^(u_i / 2)`` and blue ``2^(-u_i / 2)`` (the largest
+    exposure and white-balance differences the jitter allows, between the first and the last capture)."""
 
     def validate(self) -> None:
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
@@ -794,6 +798,8 @@ class LayoutParams:
             raise ValueError(f"symmetric must be a boolean, got {self.symmetric!r}")
         if not 0.0 <= self.appearance_jitter <= 2.0:
             raise ValueError(f"appearance_jitter must be in [0, 2] stops, got {self.appearance_jitter}")
+        if self.appearance_bracket and self.appearance_jitter <= 0:
+            raise ValueError("appearance_bracket spreads the appearance_jitter range: set appearance_jitter > 0")
 
 
 def _rng(seed: int, stream: int) -> np.random.Generator:
@@ -1214,9 +1220,11 @@ def make_layout(layout: str, **params) -> SceneLayout:
     lp = LayoutParams(**params)
     built = LAYOUTS[layout](lp)
     if lp.appearance_jitter > 0:
-        _draw_appearance(built, lp.appearance_jitter)
+        _draw_appearance(built, lp.appearance_jitter, lp.appearance_bracket)
     else:  # the parameter's default leaves ground_truth.json as it was before the parameter existed
         built.params.pop("appearance_jitter", None)
+    if not lp.appearance_bracket:
+        built.params.pop("appearance_bracket", None)
     return built
 
 
@@ -1224,8 +1232,14 @@ APPEARANCE_STREAM = 97
 """Random stream of the per-capture appearance (independent of geometry, textures and cameras)."""
 
 
-def _draw_appearance(layout: SceneLayout, jitter: float) -> None:
-    """Gives each training capture its own exposure and white balance (see ``LayoutParams.appearance_jitter``)."""
+def _draw_appearance(layout: SceneLayout, jitter: float, bracket: bool = False) -> None:
+    """Gives each training capture its own exposure and white balance (see ``LayoutParams.appearance_jitter`` and
+    ``appearance_bracket``)."""
+    if bracket:
+        for u, cap in zip(np.linspace(-jitter, jitter, len(layout.captures)), layout.captures, strict=True):
+            cap.exposure = float(2.0**u)
+            cap.white_balance = (float(2.0 ** (u / 2)), 1.0, float(2.0 ** (-u / 2)))
+        return
     rng = _rng(layout.seed, APPEARANCE_STREAM)
     for cap in layout.captures:
         cap.exposure = float(2.0 ** rng.uniform(-jitter, jitter))
