@@ -175,8 +175,8 @@ def write_report(path: Path, data: dict) -> None:
               "default (appearance matching is off by default).", "",
               f"NeRF (ref.) blends nothing, yet differs by {ref_gap:+.2f} dB between the two versions: the reference "
               "run trained on other images (and scored in its own capture's appearance) differs by that much, "
-              "which bounds what the matched - plain column can "
-              "resolve; matched - unmatched within the jittered scene (same runs) is the effect of matching alone.",
+              "which bounds what the matched - plain column can resolve; matched - unmatched within the jittered "
+              "scene (same runs) is the effect of matching alone.",
               "",
               f"Target: matched blends of the jittered scene within {TARGET_DB} dB of the plain scene's, every method: "
               f"{'met' if met else 'NOT met'}."]  # fmt: skip
