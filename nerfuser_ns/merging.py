@@ -174,7 +174,10 @@ def median_mids(merged: MergedSamples) -> Float[Tensor, "*bs m"]:
     """Merged midpoints for the median depth, zero-length intervals taking the previous real interval's midpoint.
 
     Merging duplicates boundaries (e.g. identical NeRFs, padding); where the accumulated weight never reaches 0.5
-    the median falls on the last interval, which must be the last real one, as for a single NeRF.
+    the median falls on the last interval, which must be the last real one, as for a single NeRF. There it is a
+    convention, not a surface, and not continuous: where the NeRFs' far ends part, the gap between them becomes the
+    last interval (measured: a 1e-5 relative change to a NeRF's parameters, or CPU against CUDA arithmetic, moved
+    such rays' median by 6 units of 34).
     """
     pos = merged.deltas > 0
     idx = torch.arange(pos.shape[-1], device=pos.device).expand_as(pos)
