@@ -25,7 +25,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -72,14 +72,19 @@ class DemoConfig:
     """Longer side of the registration renders (192: the scene's training images; our evaluation registers at it)."""
     registration_poses: int = 24
     """Training poses per NeRF rendered for the registration."""
+    device: str = field(default_factory=runs.default_device)
+    """Torch device the NeRFs render on, for the registration and the blends (default: cuda when torch sees a GPU)."""
 
 
 def run_configs(runs_dir: Path) -> dict[str, Path]:
     return {name: runs_dir / name / "nerfacto-cpu" / "demo" / "config.yml" for name in ("capture_a", "capture_b")}
 
 
-def register_command(configs: Sequence[Path], output: Path, work_dir: Path, size: int, poses: int) -> list[str]:
-    """``ns-nerfuser-register`` with its defaults but the render size and pose count (and the demo's work folder)."""
+def register_command(
+    configs: Sequence[Path], output: Path, work_dir: Path, size: int, poses: int, device: str
+) -> list[str]:
+    """``ns-nerfuser-register`` with its defaults but the render size, pose count and device (and the demo's work
+    folder)."""
     return [
         "ns-nerfuser-register",
         "--configs", *[str(p) for p in configs],
@@ -87,6 +92,7 @@ def register_command(configs: Sequence[Path], output: Path, work_dir: Path, size
         "--work-dir", str(work_dir),
         "--sampling.size", str(size),
         "--sampling.max-training-poses", str(poses),
+        "--device", device,
     ]  # fmt: skip
 
 
@@ -106,6 +112,7 @@ def estimated_errors(
 
 
 def main(cfg: DemoConfig) -> None:
+    device = runs.check_device(cfg.device)  # before any work
     console = Console()
     start = time.perf_counter()
     configs = run_configs(cfg.runs_dir)
@@ -137,7 +144,7 @@ def main(cfg: DemoConfig) -> None:
 
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     captures = {c["name"]: np.asarray(c["capture_to_world"], dtype=np.float64) for c in gt["captures"]}
-    loaded = {name: runs.load_run(path) for name, path in configs.items()}
+    loaded = {name: runs.load_run(path, device=device) for name, path in configs.items()}
     summary: dict = {"scene": str(cfg.scene_dir), "nerfs": {n: {"config": str(p), "step": loaded[n].step}
                                                             for n, p in configs.items()}}  # fmt: skip
     # world -> capture_a's dataset frame -> its NeRF frame: the fusion's common frame
@@ -153,7 +160,7 @@ def main(cfg: DemoConfig) -> None:
     if reg_path is None and cfg.register:
         reg_path = cfg.output_dir / "registration.json"
         command = register_command(list(configs.values()), reg_path, cfg.output_dir / "registration_work",
-                                   cfg.registration_size, cfg.registration_poses)  # fmt: skip
+                                   cfg.registration_size, cfg.registration_poses, cfg.device)  # fmt: skip
         # in this process (the runs' imports are paid once): the same as running the command printed
         console.print(f"[bold]registering the NeRFs from their re-renderings:[/bold] {' '.join(command)}")
         t = time.perf_counter()
@@ -219,7 +226,7 @@ def main(cfg: DemoConfig) -> None:
 def entrypoint() -> None:
     try:
         main(tyro.cli(DemoConfig))
-    except (RegistrationError, FusionSpecError) as e:
+    except (RegistrationError, FusionSpecError, runs.RunLoadError) as e:
         raise SystemExit(f"demo: {e}") from None
 
 

@@ -374,11 +374,18 @@ def test_demo_script_scores_a_given_registration(tiny, tmp_path, monkeypatch):
             blend["ground truth"]["methods"][method]["psnr"], abs=1e-4
         )
         assert len(list((out / "fused" / "estimated" / method).glob("test_*.png"))) == 2
-    # the registration the demo runs is ns-nerfuser-register's command line with its defaults but size and poses
-    command = demo.register_command(tiny.configs, tmp_path / "r.json", tmp_path / "w", 192, 24)
+    # the registration the demo runs is ns-nerfuser-register's command line with its defaults but size, poses and
+    # the device (the demo's own default: the same as the command's)
+    command = demo.register_command(tiny.configs, tmp_path / "r.json", tmp_path / "w", 192, 24, "cpu")
     parsed = tyro.cli(demo.register.RegisterCommand, args=command[1:])
     assert command[0] == "ns-nerfuser-register" and parsed.configs == list(tiny.configs)
     assert (parsed.sampling.size, parsed.sampling.max_training_poses, parsed.sampling.source) == (192, 24, "auto")
+    assert parsed.device == "cpu" and demo.DemoConfig().device == demo.register.RegisterCommand().device
+    # a device this machine lacks is refused with one line before any work
+    monkeypatch.setattr(sys, "argv", ["demo.py", *args, "--device", "cuda:7", "--output-dir", str(tmp_path / "none")])
+    with pytest.raises(SystemExit, match=r"^demo: --device 'cuda:7' is not on this machine"):
+        demo.entrypoint()
+    assert not (tmp_path / "none").exists()
     # a file in another NeRF's frame is refused with one line naming it
     shifted = write_minimal_registration([
         NerfEntry(n, c, T) for n, c, T in zip(tiny.captures, tiny.configs, tiny.nerf_to_common(1), strict=True)
