@@ -265,7 +265,6 @@ class _SceneClouds:
 
 
 def main(cfg: BenchBaselinesConfig) -> None:
-    import open3d as o3d
     import torch
     from rich.console import Console
 
@@ -274,6 +273,10 @@ def main(cfg: BenchBaselinesConfig) -> None:
     from nerfuser_ns.registration import PoseSamplingConfig
     from nerfuser_ns.renderers import NerfstudioRenderer
 
+    try:  # before any work
+        open3d_version = baselines.open3d_version()
+    except baselines.BaselineError as e:
+        raise SystemExit(f"bench_baselines: {e}") from None
     torch.set_num_threads(cfg.threads)
     console = Console()
     variants = [(v, *_parse_variant(v)) for v in cfg.variants]
@@ -300,7 +303,7 @@ def main(cfg: BenchBaselinesConfig) -> None:
         "command": "python scripts/bench_baselines.py " + " ".join(sys.argv[1:]),
         "machine": {
             "platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-            "open3d": o3d.__version__, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+            "open3d": open3d_version, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
         },
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "settings": {

@@ -595,13 +595,17 @@ def gamma_plot(path: Path, scene: str, sweep: dict) -> None:
 def main(cfg: EvaluateConfig) -> None:  # noqa: C901 - a linear sequence of report sections
     import nerfstudio
     import numpy as np
-    import open3d
     import pycolmap
     import torch
     from rich.console import Console
 
     from nerfuser_ns import runs, runtime
-    from nerfuser_ns.bench import evaluation
+    from nerfuser_ns.bench import baselines, evaluation
+
+    try:  # the registration section compares against Open3D's baselines: say so before any work
+        open3d_version = baselines.open3d_version()
+    except baselines.BaselineError as e:
+        raise SystemExit(f"evaluate: {e}") from None
 
     if cfg.quick:
         cfg.apply_quick()
@@ -622,7 +626,7 @@ def main(cfg: EvaluateConfig) -> None:  # noqa: C901 - a linear sequence of repo
             "torch": torch.__version__,
             "nerfstudio": getattr(nerfstudio, "__version__", "1.1.5"),
             "pycolmap": pycolmap.__version__,
-            "open3d": open3d.__version__,
+            "open3d": open3d_version,
         },
         "lpips_available": runtime.lpips_weights_available(),
         "sections_done": [],

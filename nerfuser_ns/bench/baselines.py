@@ -58,10 +58,22 @@ class BaselineError(ValueError):
     """Input a point-cloud baseline cannot use (empty cloud, bad scale, missing depth...); one-line message."""
 
 
-def _o3d():
-    import open3d as o3d  # here, not at the top: Open3D is the optional `baselines` extra
+OPEN3D_MISSING = 'the point-cloud baselines need Open3D: pip install "nerfuser_ns[baselines]"'
 
+
+def _o3d():
+    """Open3D, imported here, not at the top: it is the optional ``baselines`` extra (:class:`BaselineError` with
+    :data:`OPEN3D_MISSING` where it is not installed)."""
+    try:
+        import open3d as o3d
+    except ImportError:
+        raise BaselineError(OPEN3D_MISSING) from None
     return o3d
+
+
+def open3d_version() -> str:
+    """The installed Open3D's version, checked before long work that needs it."""
+    return _o3d().__version__
 
 
 # ---------------------------------------------------------------------------------------------------------------------

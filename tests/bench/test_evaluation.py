@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -393,3 +394,23 @@ def test_demo_script_scores_a_given_registration(tiny, tmp_path, monkeypatch):
     monkeypatch.setattr(sys, "argv", ["demo.py", *args, "--registration", str(shifted)])
     with pytest.raises(SystemExit, match="reg_b.json: not in capture_a's frame"):
         demo.entrypoint()
+
+
+@pytest.mark.parametrize(
+    "script, config", [("evaluate", "EvaluateConfig"), ("bench_baselines", "BenchBaselinesConfig")]
+)
+def test_scripts_needing_open3d_say_so_before_any_work(script, config, tmp_path, monkeypatch):
+    """Open3D is the optional ``baselines`` extra: without it, one line naming it and the install command, nothing
+    written."""
+    spec = importlib.util.spec_from_file_location(f"{script}_script", ROOT / f"scripts/{script}.py")
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, f"{script}_script", module)
+    spec.loader.exec_module(module)
+    monkeypatch.setitem(sys.modules, "open3d", None)  # import open3d raises ImportError
+    out = tmp_path / "out"
+    args = ["--output-dir", str(out)] if script == "evaluate" else ["--output", str(out / "baselines.json")]
+    cfg = tyro.cli(getattr(module, config), args=args)
+    line = f'{script}: the point-cloud baselines need Open3D: pip install "nerfuser_ns[baselines]"'
+    with pytest.raises(SystemExit, match=f"^{re.escape(line)}$"):
+        module.main(cfg)
+    assert not out.exists()
