@@ -45,6 +45,8 @@ from nerfuser_ns.coverage import CameraIndex, CoverageParams, coverage_scores
 from nerfuser_ns.merging import (
     MergedSamples,
     expected_depth,
+    furthest_last_mids,
+    last_sample_mids,
     median_depth,
     median_mids,
     merge_samples,
@@ -538,11 +540,12 @@ def blend(
     if any(m not in SAMPLE_METHODS for m in methods):
         mids = 0.5 * (starts + ends)
         per_nerf = (render_samples(weights, rgbs, background_rgbs).clamp(0.0, 1.0), weights.sum(-1),
-                    median_depth(weights, mids), expected_depth(weights, mids))  # fmt: skip
-    merged_once: tuple[Tensor, MergedSamples] | None = None
+                    median_depth(weights, mids, last_sample_mids(starts, ends)),
+                    expected_depth(weights, mids))  # fmt: skip
+    merged_once: tuple[Tensor, MergedSamples, Tensor] | None = None
     for method in methods:
         if method in SAMPLE_METHODS and merged_once is not None:
-            order, merged = merged_once
+            order, merged, far_median = merged_once
         elif method in SAMPLE_METHODS:
             # Each ray merges only the samples of the NeRFs passing its distance test, packed into the first slots
             # (as many as the most any ray of the chunk blends): the others must not split its intervals, so a ray
@@ -559,7 +562,8 @@ def blend(
                 torch.where(keep, weights.gather(0, idx), 0.0),
                 rgbs.gather(0, idx[..., None].expand(-1, -1, -1, rgbs.shape[-1])),
             )
-            merged_once = (order, merged)
+            far_median = furthest_last_mids(st, en, keep[..., 0])
+            merged_once = (order, merged, far_median)
         if method in SAMPLE_METHODS:
             d, d_bg = merged_sample_distances(merged, ray_origins, ray_directions, nerf_origins[order])
             nerf_weights = None
@@ -588,7 +592,7 @@ def blend(
             results[method] = {
                 "rgb": out.rgb.clamp(0.0, 1.0),
                 "accumulation": out.accumulation,
-                "depth": median_depth(out.weights, median_mids(merged)),
+                "depth": median_depth(out.weights, median_mids(merged), far_median),
                 "expected_depth": out.depth,
                 "share": torch.zeros_like(camera_d).scatter_(0, order, out.nerf_share),
             }

@@ -527,6 +527,37 @@ def _blend_inputs(n=3, r=40, k=8, seed=5):
     return starts, ends, p, rgbs, bg, o, d, nerf_origins
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_median_depth_where_half_the_mass_is_never_reached_is_continuous(dtype):
+    """Two NeRFs with the same samples but the second's far end, too little mass to reach 0.5: every method's median
+    depth is nerfstudio's (the last sample's midpoint) for the NeRFs alike, moves with the far end by at most what
+    the end moved, and IDW-Sample takes the furthest NeRF's own. (The last merged interval jumped: where the far ends
+    part by a sliver, it became the sliver, half the last sample away.)"""
+    starts = torch.tensor([2.0, 8.0, 16.0], dtype=dtype).expand(2, 1, 3).clone()
+    p = torch.tensor([0.05, 0.1, 0.07], dtype=dtype).expand(2, 1, 3)
+    rgbs = torch.rand(2, 1, 3, 3, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    o, d = torch.zeros(1, 3, dtype=dtype), torch.tensor([[0.0, 0.0, 1.0]], dtype=dtype)
+    origins = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]], dtype=dtype)
+    settings = BlendSettings(gamma=5.0, tau=None)
+
+    def depths(end_b: float) -> dict[str, float]:
+        ends = torch.tensor([8.0, 16.0, 33.7175], dtype=dtype).expand(2, 1, 3).clone()
+        ends[1, 0, -1] = end_b
+        out = blend(BLEND_METHODS, starts, ends, p, rgbs, torch.zeros(2, 1, 3, dtype=dtype), o, d, origins, settings)
+        return {m: float(r["depth"][0]) for m, r in out.items()}
+
+    single = 0.5 * (16.0 + 33.7175)
+    ends_b = [33.7175, 33.71751, 33.7176, 33.72, 34.0, 40.0]
+    runs = [depths(e) for e in ends_b]
+    for method, value in runs[0].items():
+        assert value == pytest.approx(single, rel=1e-6), method
+    for i in range(1, len(ends_b)):
+        for method in BLEND_METHODS:
+            step = abs(runs[i][method] - runs[i - 1][method])
+            assert step <= 0.5 * (ends_b[i] - ends_b[i - 1]) + 1e-4, (method, ends_b[i - 1], ends_b[i])
+    assert runs[-1]["idw-sample"] == pytest.approx(0.5 * (16.0 + 40.0), rel=1e-6)
+
+
 @pytest.mark.parametrize("tau", [None, 1.5])
 @pytest.mark.parametrize("gamma", [0.5, 4.0])
 def test_blend_entry_matches_the_reference_functions(gamma, tau):
