@@ -30,6 +30,7 @@ import torch
 import yaml
 from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
@@ -351,6 +352,12 @@ def training_cameras(config_path: Path | str, data_override: Path | None = None)
     Only transforms.json (and the first image's size) is read: no images are loaded and no datamanager (stock
     nerfacto's spawns worker processes) is built. Raises :class:`RunLoadError` naming the dataset when it is gone.
     """
+    return training_views(config_path, data_override).cameras
+
+
+def training_views(config_path: Path | str, data_override: Path | None = None) -> DataparserOutputs:
+    """The run's training split as its dataparser gives it (cameras in the NeRF frame, image file names in the same
+    order, which is the order of the camera optimiser's adjustments); as :func:`training_cameras`, no image is read."""
     config_path = resolve_config_path(config_path)
     config = read_config(config_path)
     data = dataset_path(config, data_override)
@@ -362,10 +369,9 @@ def training_cameras(config_path: Path | str, data_override: Path | None = None)
     parser_config = copy.deepcopy(config.pipeline.datamanager.dataparser)
     parser_config.data = data
     try:
-        parsed = parser_config.setup().get_dataparser_outputs(split="train")
+        return parser_config.setup().get_dataparser_outputs(split="train")
     except Exception as e:  # noqa: BLE001 - any parsing failure is the dataset's fault
         raise RunLoadError(f"{data}: the run's dataset cannot be parsed ({type(e).__name__}: {e})") from None
-    return parsed.cameras
 
 
 def optimized_poses(model: Model, c2w: Float[Tensor, "n 3|4 4"]) -> Float[Tensor, "n 3 4"]:

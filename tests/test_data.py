@@ -342,7 +342,7 @@ def test_without_test_images_the_reference_training_cameras_are_rendered(tmp_pat
     """ns-render spiral/interpolate need cameras: the first readable NeRF's training cameras, in the common frame."""
     from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager
 
-    from nerfuser_ns.runs import training_cameras
+    from nerfuser_ns.runs import training_cameras, training_views
 
     ring = [sim3.make_sim3(scene_yaw(0.5 * i), np.array([2 * np.sin(0.5 * i), 0.3 * i, 2.0]), 1.0) for i in range(5)]
     a = fake_run(tmp_path / "outputs", "a", data=write_dataset(tmp_path / "capture_a", ring))
@@ -355,6 +355,9 @@ def test_without_test_images_the_reference_training_cameras_are_rendered(tmp_pat
     dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
     assert isinstance(dm, VanillaDataManager)  # ns-render spiral asserts it
     own = training_cameras(a)
+    views = training_views(a)  # the same cameras, with the images they belong to in the same order
+    assert torch.equal(views.cameras.camera_to_worlds, own.camera_to_worlds)
+    assert [Path(f).name for f in views.image_filenames] == [f"f{i}.png" for i in range(5)]
     expected = sim3.transform_poses(T_A, own.camera_to_worlds.double().numpy())
     assert len(dm.train_dataset) == len(own) == 5 and dm.eval_dataset is dm.train_dataset
     np.testing.assert_allclose(dm.train_dataset.cameras.camera_to_worlds.numpy(), expected, atol=1e-5)
