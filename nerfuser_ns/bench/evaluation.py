@@ -265,6 +265,41 @@ class _PeakRSS:
         return (self.peak - self.baseline) / 2**20
 
 
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+class _PeakMemory:
+    """What a block added at most to the memory it runs in: the process's resident memory (sampled, :class:`_PeakRSS`)
+    on the CPU, the allocator's peak on a GPU."""
+
+    def __init__(self, device: torch.device):
+        self._device = device
+        self._rss = _PeakRSS() if device.type != "cuda" else None
+        self._baseline = 0
+
+    def __enter__(self) -> _PeakMemory:
+        if self._rss is not None:
+            self._rss.__enter__()
+        else:
+            torch.cuda.synchronize(self._device)
+            self._baseline = torch.cuda.memory_allocated(self._device)
+            torch.cuda.reset_peak_memory_stats(self._device)
+        return self
+
+    def __exit__(self, *exc) -> None:  # noqa: ANN002
+        if self._rss is not None:
+            self._rss.__exit__(*exc)
+        else:
+            torch.cuda.synchronize(self._device)
+            self._peak = torch.cuda.max_memory_allocated(self._device)
+
+    @property
+    def added_mib(self) -> float:
+        return self._rss.added_mib if self._rss is not None else (self._peak - self._baseline) / 2**20
+
+
 @dataclass
 class RenderCost:
     """Fused render time against the sum of the sub-models' own render times for the same rays."""
@@ -282,9 +317,10 @@ class RenderCost:
     ratio_quartiles: tuple[float, float]
     """Lower and upper quartile of the per-repeat ratios: the measurement's spread."""
     fused_peak_mib: float
-    """Peak resident memory added by one fused pass over the chunk (MiB, sampled in a pass after the timing)."""
+    """Peak memory added by one fused pass over the chunk (MiB, in a pass after the timing): resident memory, sampled,
+    on the CPU; the CUDA allocator's peak on a GPU."""
     sub_peak_mib: list[float]
-    """Peak resident memory added by each sub-model's own pass (MiB, sampled)."""
+    """Peak memory added by each sub-model's own pass (MiB, as ``fused_peak_mib``)."""
     method: str
     repeats: int
     used_rays: list[int]
@@ -322,9 +358,10 @@ def measure_render_cost(
     # in a process then runs under the same one (set lazily, the first call's memory hid in glibc's cache).
     _return_freed_memory_to_os()
     model = fused(models, transforms, nerf_cameras, blend_method=method, gamma=gamma, tau=tau, share_outputs=False)
-    bundle = cameras.generate_rays(torch.arange(len(cameras))[:, None], keep_shape=False)
-    gen = torch.Generator().manual_seed(seed)
-    pick = torch.randperm(len(bundle), generator=gen)[:num_rays]
+    cameras = cameras.to(model.device)
+    bundle = cameras.generate_rays(torch.arange(len(cameras), device=model.device)[:, None], keep_shape=False)
+    gen = torch.Generator().manual_seed(seed)  # on the CPU: the same rays on every device
+    pick = torch.randperm(len(bundle), generator=gen)[:num_rays].to(model.device)
     rays = bundle[pick]
     mapped = [map_rays(rays, model.common_to_nerf[i], m.num_train_data)[0] for i, (_, m) in enumerate(models)]
     used = model.used_nerfs(rays)
@@ -341,12 +378,14 @@ def measure_render_cost(
             p()  # warm-up
         for _ in range(repeats):
             for i in order_rng.permutation(len(passes)):
+                _synchronize(model.device)  # CUDA runs asynchronously: time the work, not its launch
                 t = time.perf_counter()
                 passes[i]()
+                _synchronize(model.device)
                 times[i].append(time.perf_counter() - t)
         # memory after the timing: the sampler thread would slow the timed passes
         for p in passes[: n + 1]:
-            with _PeakRSS() as mem:
+            with _PeakMemory(model.device) as mem:
                 p()
             peaks.append(mem.added_mib)
     med = [statistics.median(t) for t in times]
@@ -397,6 +436,7 @@ def gamma_sweep(
     """Metrics of every method for every gamma; the sub-models are queried once per ray chunk and the samples are
     re-blended per gamma (``NerfuserModel.blend_samples``), so a sweep costs little more than one render."""
     model = fused(models, transforms, tau=tau, render_all_methods=True, share_outputs=False)
+    cameras = cameras.to(model.device)
     keys = [f"rgb_{m.replace('-', '_')}" for m in methods]
     images: dict[float, dict[str, list[Tensor]]] = {g: {k: [] for k in keys} for g in gammas}
     chunk = model.config.eval_num_rays_per_chunk

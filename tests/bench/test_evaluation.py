@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import tyro
 
 from nerfuser_ns import runs, sim3
@@ -299,6 +300,22 @@ def test_gamma_sweep_matches_separate_renders(tiny, models):
             assert sweep[g][m]["psnr"] == pytest.approx(one[m]["psnr"], abs=1e-3)
     assert sweep[0.5]["nearest"]["psnr"] == pytest.approx(sweep[20.0]["nearest"]["psnr"], abs=1e-6)  # no gamma
     assert sweep[0.5]["idw-sample"]["psnr"] != pytest.approx(sweep[20.0]["idw-sample"]["psnr"], abs=1e-4)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cost_and_gamma_sweep_on_cuda_models(tiny, models):
+    """The kit's measurements follow the models' device: rays and cameras are moved there, CUDA memory is the
+    allocator's peak, and the sweep scores what the CPU scores."""
+    cams, target = tiny.test_views(max_views=1)
+    T = tiny.nerf_to_common()
+    on_cuda = [(n, runs.load_run(p, device="cuda").model) for n, p in zip(tiny.captures, tiny.configs, strict=True)]
+    cost = evaluation.measure_render_cost(on_cuda, T, cams, num_rays=256, repeats=3)
+    assert cost.fused_s > 0 and cost.fused_peak_mib > 0 and sum(cost.used_rays) >= 256
+    kwargs = {"gammas": [5.0], "tau": None, "methods": ("nearest", "idw-sample")}
+    gpu = evaluation.gamma_sweep(on_cuda, T, cams, target, **kwargs)
+    cpu = evaluation.gamma_sweep(models, T, cams, target, **kwargs)
+    for m in kwargs["methods"]:
+        assert gpu[5.0][m]["psnr"] == pytest.approx(cpu[5.0][m]["psnr"], abs=0.05)
 
 
 def test_demo_script_scores_a_given_registration(tiny, tmp_path, monkeypatch):
