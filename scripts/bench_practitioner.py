@@ -42,13 +42,15 @@ import tyro
 from PIL import Image
 from rich.console import Console
 
-from nerfuser_ns import runs, sim3
+from nerfuser_ns import registration, runs, sim3
 from nerfuser_ns.bench import evaluation
+from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import make_layout, render, to_uint8, write_capture
 from nerfuser_ns.coverage import CoverageParams
 from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.registration import read_registration
+from nerfuser_ns.registration import RegistrationConfig, read_registration
 from nerfuser_ns.registration.record import iter_registered_nerfs
+from nerfuser_ns.renderers import NerfstudioRenderer
 from nerfuser_ns.spec import write_fusion_spec
 
 CONSOLE = Console(width=120)
@@ -102,11 +104,8 @@ class BenchPractitioner:
     so that training ends)."""
     stages: list[str] = field(default_factory=lambda: ["scene", "colmap", "train", "register", "fuse"])
     """Stages to run (each skipped when its output exists); ``cost`` (not a default) also times the fused model's
-    IDW-Sample and ``coverage`` passes against the sub-models on the rays they are queried on."""
-    test_view_truths: list[Literal["stored", "optimized"]] = field(default_factory=lambda: ["stored"])
-    """Ground truths placing the test views in the reference NeRF's frame, one fused run and ``ns-eval`` each:
-    ``stored`` ties the run's frame to the world through its stored (COLMAP) poses, ``optimized`` through its
-    camera-optimised training poses (:func:`capture_ground_truth`)."""
+    IDW-Sample and ``coverage`` passes against the sub-models on the rays they are queried on; ``content`` (not a
+    default) registers each run to the ground-truth scene placed by the stored truth (:func:`stage_content`)."""
     report: Path | None = None
     """Write the markdown report here (after the stages)."""
     report_only: bool = False
@@ -264,9 +263,9 @@ def capture_ground_truth(layout, case_dir: Path) -> list[dict]:
 def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: float) -> dict | None:
     """The same tie through the run's camera-optimised training poses (NeRF frame) instead of the stored ones.
 
-    The optimiser moves the cameras and, with them, where the trained content lies in the NeRF frame (a common part of
-    its corrections is a change of frame the images cannot see); this fit follows the content. None when the run has
-    no optimiser (then both ties agree) or the checkpoint is gone."""
+    The optimiser moves the cameras, and the trained content may follow them; a common part of its corrections would
+    move the content's frame, which this fit follows (per-camera parts show as its residuals). None when the run has
+    no optimiser (then both ties agree) or no config."""
     if not config.is_file():
         return None
     views = runs.training_views(config)
@@ -287,26 +286,18 @@ def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: fl
     }
 
 
-TRUTH_SUFFIX = {"stored": "", "optimized": "_optimized"}
-"""File-name suffix of the fused run and its scores per truth placing the test views (:func:`capture_ground_truth`)."""
-
-
-def stage_fuse(layout, case_dir: Path, gt: list[dict], truth: str = "stored") -> None:
-    """``ns-train nerfuser``, ``ns-eval`` and ``ns-render dataset`` with the world-posed test views placed in the
-    reference NeRF's frame by ``truth`` (stored: through its COLMAP frame; optimized: through its optimised cameras)."""
-    suffix = TRUTH_SUFFIX[truth]
-    key = "nerf_to_world" + suffix
-    if not (case_dir / "registration.json").is_file() or key not in gt[0]:
+def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
+    if not (case_dir / "registration.json").is_file():
         return
-    eval_json = case_dir / f"eval{suffix}.json"
+    eval_json = case_dir / "eval.json"
     if eval_json.is_file():
         return
-    world_to_ref = sim3.invert_sim3(gt[0][key])
+    world_to_ref = sim3.invert_sim3(gt[0]["nerf_to_world"])
     spec = write_fusion_spec(
-        case_dir / f"fusion{suffix}.json", [run_config(case_dir, c.name) for c in layout.captures],
+        case_dir / "fusion.json", [run_config(case_dir, c.name) for c in layout.captures],
         registration="registration.json", test_data="test", test_to_common=world_to_ref,
     )  # fmt: skip
-    fused_dir = case_dir / f"fused{suffix}"
+    fused_dir = case_dir / "fused"
     seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir", str(fused_dir),
                     "--experiment-name", "fused", "--timestamp", "bench",
                     "--pipeline.model.render-all-methods", "True"], case_dir / "fuse_train.log")  # fmt: skip
@@ -319,6 +310,32 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict], truth: str = "stored") ->
     seconds = _run([str(BIN / "ns-render"), "dataset", "--load-config", str(fused_config), "--output-path",
                     str(renders), "--split", "test", "--rendered-output-names", "rgb"], case_dir / "render.log")
     _add_time(case_dir, "ns-render dataset", seconds)
+
+
+def stage_content(layout, case_dir: Path, gt: list[dict]) -> None:
+    """Where each run's trained content lies against the stored truth: the run registered (every default) to the
+    ground-truth scene placed in the run's NeRF frame by that truth. The SIM(3) found is the identity where the truth
+    holds for the content; what it finds beyond the identity bounds what a NeRF-to-NeRF registration can reach against
+    that truth (within this registration's own error on a NeRF beside an exact renderer)."""
+    output = case_dir / "content_truth.json"
+    if output.is_file():
+        return
+    results = {}
+    for cap, g in zip(layout.captures, gt, strict=True):
+        nerf = NerfstudioRenderer(run_config(case_dir, cap.name), name=cap.name)
+        truth = SceneFrameRenderer(layout.scene, g["nerf_to_world"], "ground truth", nerf.training_poses())
+        start = time.perf_counter()
+        # the registration's work folder: the run's renders at its training poses are reused from there
+        record = registration.register([nerf, truth], RegistrationConfig(), case_dir / "registration_work",
+                                       CONSOLE).to_record()  # fmt: skip
+        T = np.asarray(record["nerfs"][1]["T_to_reference"])  # the truth's frame -> the content's (NeRF) frame
+        e = sim3.sim3_errors(T, np.eye(4))
+        results[cap.name] = {"truth_to_content": T.tolist(), "r_deg": float(e.r_err_deg), "t": float(e.t_err),
+                             "s": float(e.s_err), "source": record.get("sampling_choice", {}).get("source"),
+                             "seconds": round(time.perf_counter() - start, 1)}  # fmt: skip
+        CONSOLE.print(f"{case_dir.name} {cap.name}: content vs stored truth r {e.r_err_deg:.4f} deg, t {e.t_err:.5f}, "
+                      f"s {e.s_err:.5f}")
+    write_text_atomic(output, json.dumps(results, indent=2) + "\n")
 
 
 COST_METHODS = ("idw-sample", "coverage")
@@ -370,15 +387,26 @@ def score_case(layout, case_dir: Path, spec: str) -> dict:
             record["registration"]["errors_optimized"] = _errors(reg, gt, "nerf_to_world_optimized")
     else:
         record["registration"] = {"errors": None, "refused": (case_dir / "register_failed.txt").is_file()}
-    for suffix in TRUTH_SUFFIX.values():
-        eval_json = case_dir / f"eval{suffix}.json"
-        if eval_json.is_file():
-            results = json.loads(eval_json.read_text())["results"]
-            for metric in ("psnr", "ssim"):
-                record[f"blend_{metric}{suffix}"] = {
-                    k: results.get(f"{metric}_{k}", results.get(metric) if k == "idw_sample" else None)
-                    for k, _ in BLEND_COLUMNS
-                }
+    eval_json = case_dir / "eval.json"
+    if eval_json.is_file():
+        results = json.loads(eval_json.read_text())["results"]
+        for metric in ("psnr", "ssim"):
+            record[f"blend_{metric}"] = {
+                k: results.get(f"{metric}_{k}", results.get(metric) if k == "idw_sample" else None)
+                for k, _ in BLEND_COLUMNS
+            }
+    content = case_dir / "content_truth.json"
+    if content.is_file():
+        found = json.loads(content.read_text())
+        record["content_truth"] = {k: {m: v[m] for m in ("r_deg", "t", "s", "source", "seconds")}
+                                   for k, v in found.items()}  # fmt: skip
+        if reg_path.is_file() and all(g["capture"] in found for g in gt):
+            # the content's frame in the world: the stored truth's moved by what the run-to-scene registration found
+            for g in gt:
+                g["nerf_to_world_content"] = sim3.compose(
+                    g["nerf_to_world"], sim3.invert_sim3(np.asarray(found[g["capture"]]["truth_to_content"]))
+                )
+            record["registration"]["errors_content"] = _errors(read_registration(reg_path), gt, "nerf_to_world_content")
     cost = case_dir / "cost.json"
     if cost.is_file():
         record["cost"] = {m: {k: c[k] for k in ("ratio", "ratio_used", "fused_s", "sub_used_s", "used_rays")}
@@ -438,21 +466,13 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
                          f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {col} | {cen} | {posed} |")
             all_err.append(e)
     lines += _optimized_truth_section(records)
+    lines += _content_section(records)
     lines += ["", "## Blending (PSNR from `ns-eval`'s JSON, estimated registration, world-posed test views)", "",
               "| case | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
               "| --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
     for r in records:
         b = r.get("blend_psnr")
         if b:
-            lines.append(f"| {r['case']} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
-                                                          BLEND_COLUMNS) + " |")  # fmt: skip
-    optimized = [r for r in records if r.get("blend_psnr_optimized")]
-    if optimized:
-        lines += ["", "The same, with the test views placed through the camera-optimised truth (a second fused run, "
-                  "same registration):", "", "| case | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
-                  "| --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
-        for r in optimized:
-            b = r["blend_psnr_optimized"]
             lines.append(f"| {r['case']} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
                                                           BLEND_COLUMNS) + " |")  # fmt: skip
     lines += ["", "## Time of every step (s)", ""]
@@ -493,8 +513,8 @@ def _optimized_truth_section(records: list[dict]) -> list[str]:
     if not rows:
         return []
     lines = ["", "### The same registrations against the camera-optimised truth", "",
-             "nerfacto's camera optimiser (on by default) moves the training cameras, and the trained content with "
-             "them, away from the stored COLMAP frame by a common change of frame the images cannot see. Here each "
+             "nerfacto's camera optimiser (on by default) moves the training cameras away from their stored COLMAP "
+             "poses, and the trained content may follow them. Here each "
              "run's NeRF frame is tied to the world by a SIM(3) fitted to its optimised training poses (the "
              "checkpoint's `camera_optimizer.pose_adjustment` applied as nerfstudio applies it) instead of its stored "
              "ones; the residual columns are that fit's, beside the stored fit's (COLMAP's noise) above.", "",
@@ -514,6 +534,28 @@ def _optimized_truth_section(records: list[dict]) -> list[str]:
     lines += ["", f"Against the camera-optimised truth, {len(rows)} case(s), {len(errs)} registered NeRF(s): median "
               f"r_err {med['r_err_deg']:.4f} deg, t_err {med['t_err']:.5f}, s_err {med['s_err']:.5f}; success rate "
               f"{success:.2f}."]  # fmt: skip
+    return lines
+
+
+def _content_section(records: list[dict]) -> list[str]:
+    rows = [r for r in records if r.get("content_truth")]
+    if not rows:
+        return []
+    lines = ["", "### Where the trained content lies against the stored truth (`--stages content`)", "",
+             "Each run registered (every default) to the ground-truth scene placed in its NeRF frame by the stored "
+             "truth: the SIM(3) found would be the identity if that truth held for the trained content. It carries "
+             "the registration's own error on a NeRF beside an exact renderer.", "",
+             "| case | run | r (deg) | t | s | views | seconds |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        for name, c in r["content_truth"].items():
+            lines.append(f"| {r['case']} | {name} | {c['r_deg']:.4f} | {c['t']:.5f} | {c['s']:.5f} | {c['source']} | "
+                         f"{c['seconds']:.0f} |")
+    lines.append("")
+    for r in rows:
+        for e in r["registration"].get("errors_content") or []:
+            lines.append(f"- {r['case']}, {_short(e['nerf'])}, the registration against the content's frames (each "
+                         f"run's stored truth moved by the SIM(3) above): r_err {e['r_err_deg']:.4f} deg, t_err "
+                         f"{e['t_err']:.5f}, s_err {e['s_err']:.5f}")
     return lines
 
 
@@ -604,9 +646,9 @@ def main(cfg: BenchPractitioner) -> None:
             if "register" in cfg.stages:
                 stage_register(layout, case_dir)
             if "fuse" in cfg.stages:
-                gt = capture_ground_truth(layout, case_dir)
-                for truth in cfg.test_view_truths:
-                    stage_fuse(layout, case_dir, gt, truth)
+                stage_fuse(layout, case_dir, capture_ground_truth(layout, case_dir))
+            if "content" in cfg.stages:
+                stage_content(layout, case_dir, capture_ground_truth(layout, case_dir))
             if "cost" in cfg.stages:
                 stage_cost(layout, case_dir)
         if run_config(case_dir, layout.captures[-1].name).is_file():
