@@ -265,8 +265,8 @@ def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: fl
 
     The optimiser moves the cameras, and the trained content may follow them; a common part of its corrections would
     move the content's frame, which this fit follows (per-camera parts show as its residuals). None when the run has
-    no optimiser (then both ties agree) or no config."""
-    if not config.is_file():
+    no optimiser (then both ties agree) or no checkpoint yet."""
+    if not any(config.parent.glob("nerfstudio_models/*.ckpt")):
         return None
     views = runs.training_views(config)
     model = runs.load_run(config).model
@@ -538,6 +538,7 @@ def _optimized_truth_section(records: list[dict]) -> list[str]:
 
 
 def _content_section(records: list[dict]) -> list[str]:
+    """The runs' content against the stored truth (:func:`stage_content`), and the registration against the content."""
     rows = [r for r in records if r.get("content_truth")]
     if not rows:
         return []
@@ -545,7 +546,7 @@ def _content_section(records: list[dict]) -> list[str]:
              "Each run registered (every default) to the ground-truth scene placed in its NeRF frame by the stored "
              "truth: the SIM(3) found would be the identity if that truth held for the trained content. It carries "
              "the registration's own error on a NeRF beside an exact renderer.", "",
-             "| case | run | r (deg) | t | s | views | seconds |", "| --- | --- | --- | --- | --- | --- | --- |"]
+             "| case | run | r (deg) | t | s | pose source | seconds |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         for name, c in r["content_truth"].items():
             lines.append(f"| {r['case']} | {name} | {c['r_deg']:.4f} | {c['t']:.5f} | {c['s']:.5f} | {c['source']} | "
