@@ -1,4 +1,5 @@
-"""Fixtures shared across the suite: the tiny generated scene that the NeRF-training tests start from."""
+"""Fixtures shared across the suite (the tiny generated scene that the NeRF-training tests start from) and the order
+in which the test files are handed to the two test processes."""
 
 from __future__ import annotations
 
@@ -7,6 +8,30 @@ from pathlib import Path
 import pytest
 
 from nerfuser_ns.bench import scenes
+
+TESTS = Path(__file__).resolve().parent
+
+LONGEST_FIRST = (
+    "registration/test_pose_graph.py",
+    "bench/test_evaluate_script.py",
+    "test_plugin.py",
+    "bench/test_evaluation.py",
+    "test_viewer.py",
+    "registration/test_pipeline.py",
+    "registration/test_known_geometry.py",
+    "registration/test_sfm.py",
+)
+"""Test files of several minutes each (the CI logs' slowest durations), longest first. scripts/test.sh hands whole
+files to two processes in collection order (``--dist loadfile --no-loadscope-reorder``); started last, one of these
+would keep one process busy for minutes after the other ran out of work."""
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    def rank(item: pytest.Item) -> int:
+        path = item.path.relative_to(TESTS).as_posix() if item.path.is_relative_to(TESTS) else ""
+        return LONGEST_FIRST.index(path) if path in LONGEST_FIRST else len(LONGEST_FIRST)
+
+    items.sort(key=rank)  # stable: every file's tests keep their order, the other files theirs
 
 
 @pytest.fixture(scope="session")
