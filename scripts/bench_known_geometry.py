@@ -85,7 +85,7 @@ def _gt_case(spec: str):
 def _practitioner_case(case_dir: Path, device: str):
     name, _, seed = case_dir.name.rpartition("-")
     layout = bench_practitioner._layout(f"{name}:{seed}", bench_practitioner.BenchPractitioner())
-    gt = bench_practitioner.capture_ground_truth(layout, case_dir)
+    gt = bench_practitioner.capture_ground_truth(layout, case_dir, optimized=False)  # the stored truth alone
     renderers = [NerfstudioRenderer(bench_practitioner.run_config(case_dir, c.name), device=device, name=c.name)
                  for c in layout.captures]  # fmt: skip
     return renderers, [g["nerf_to_world"] for g in gt]

@@ -229,33 +229,29 @@ def _frame_index(file_path: str) -> int:
     return int(Path(file_path).stem.split("_")[-1]) - 1
 
 
-def capture_ground_truth(layout, case_dir: Path) -> list[dict]:
+def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list[dict]:
     """Per capture: the SIM(3) tying its stored (transforms.json) frame to the world, COLMAP's pose noise, and the
-    true NeRF-frame -> world map of its run."""
+    true NeRF-frame -> world map of its run; with ``optimized``, also the tie through its camera-optimised poses
+    (:func:`_optimized_ground_truth`, which loads the run's model)."""
     out = []
     for cap in layout.captures:
         meta = json.loads((case_dir / "datasets" / cap.name / "transforms.json").read_text())
         idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
         stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
         true = cap.c2w_world[idx]
-        est = sim3.estimate_sim3_umeyama(stored, true, robust=False)
-        data_to_world = est.T
-        mapped = sim3.transform_poses(data_to_world, stored)
-        rot_err = sim3.rotation_angle_deg(np.swapaxes(mapped[:, :3, :3], -1, -2) @ true[:, :3, :3])
-        centre_err = np.linalg.norm(mapped[:, :3, 3] - true[:, :3, 3], axis=-1)
         world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
+        data_to_world, rot_err, centre_err = _tie_to_world(stored, true, world_scale)
         data_to_nerf = runs.read_dataparser_transform(run_config(case_dir, cap.name))
         record = {
             "capture": cap.name,
             "views": cap.num_views,
             "posed_by_colmap": len(idx),
-            "colmap_rot_err_deg_median": float(np.median(rot_err)),
-            "colmap_centre_err_median": float(np.median(centre_err) / world_scale),
+            "colmap_rot_err_deg_median": rot_err,
+            "colmap_centre_err_median": centre_err,
             "nerf_to_world": sim3.compose(data_to_world, sim3.invert_sim3(data_to_nerf)),
         }
-        optimized = _optimized_ground_truth(run_config(case_dir, cap.name), cap.c2w_world, world_scale)
-        if optimized is not None:
-            record.update(optimized)
+        if optimized:
+            record.update(_optimized_ground_truth(run_config(case_dir, cap.name), cap.c2w_world, world_scale) or {})
         out.append(record)
     return out
 
@@ -274,16 +270,18 @@ def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: fl
     optimized = runs.optimized_poses(model, c2w).numpy().astype(np.float64)
     if np.array_equal(optimized, c2w.numpy()):
         return None
-    true = c2w_world[[_frame_index(str(f)) for f in views.image_filenames]]
-    fit = sim3.estimate_sim3_umeyama(optimized, true, robust=False)
-    mapped = sim3.transform_poses(fit.T, optimized)
-    rot_err = sim3.rotation_angle_deg(np.swapaxes(mapped[:, :3, :3], -1, -2) @ true[:, :3, :3])
-    centre_err = np.linalg.norm(mapped[:, :3, 3] - true[:, :3, 3], axis=-1)
-    return {
-        "optimized_rot_err_deg_median": float(np.median(rot_err)),
-        "optimized_centre_err_median": float(np.median(centre_err) / world_scale),
-        "nerf_to_world_optimized": fit.T,
-    }
+    T, rot_err, centre_err = _tie_to_world(optimized, c2w_world[[_frame_index(str(f)) for f in views.image_filenames]],
+                                           world_scale)  # fmt: skip
+    return {"optimized_rot_err_deg_median": rot_err, "optimized_centre_err_median": centre_err,
+            "nerf_to_world_optimized": T}  # fmt: skip
+
+
+def _tie_to_world(poses: np.ndarray, true: np.ndarray, world_scale: float) -> tuple[np.ndarray, float, float]:
+    """The SIM(3) fitted to the true centres of ``poses`` (Umeyama, every view), and its residuals: median rotation
+    (deg) and median centre distance over ``world_scale`` (world units; the fit reports them in the poses' units)."""
+    est = sim3.estimate_sim3_umeyama(poses, true, robust=False)
+    return (est.T, float(np.median(est.rot_residuals_deg)),
+            float(np.median(est.centre_residuals) * est.scale / world_scale))  # fmt: skip
 
 
 def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
@@ -374,8 +372,8 @@ def _errors(reg: dict, gt: list[dict], truth: str) -> list[dict]:
     return errors
 
 
-def score_case(layout, case_dir: Path, spec: str) -> dict:
-    gt = capture_ground_truth(layout, case_dir)
+def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
+    """The case's record for the reports; ``gt``: :func:`capture_ground_truth` of the case."""
     captures = [{k: v for k, v in g.items() if not k.startswith("nerf_to_world")} for g in gt]
     record: dict = {"case": case_dir.name, "spec": spec, "captures": captures, "case_dir": str(case_dir)}
     reg_path = case_dir / "registration.json"
@@ -646,14 +644,17 @@ def main(cfg: BenchPractitioner) -> None:
                 stage_train(layout, case_dir, cfg)
             if "register" in cfg.stages:
                 stage_register(layout, case_dir)
+        trained = run_config(case_dir, layout.captures[-1].name).is_file()
+        gt = capture_ground_truth(layout, case_dir) if trained else None  # once: it loads every run's model
+        if not cfg.report_only and gt is not None:
             if "fuse" in cfg.stages:
-                stage_fuse(layout, case_dir, capture_ground_truth(layout, case_dir))
+                stage_fuse(layout, case_dir, gt)
             if "content" in cfg.stages:
-                stage_content(layout, case_dir, capture_ground_truth(layout, case_dir))
-            if "cost" in cfg.stages:
-                stage_cost(layout, case_dir)
-        if run_config(case_dir, layout.captures[-1].name).is_file():
-            records.append(score_case(layout, case_dir, case))
+                stage_content(layout, case_dir, gt)
+        if not cfg.report_only and "cost" in cfg.stages:
+            stage_cost(layout, case_dir)
+        if gt is not None:
+            records.append(score_case(layout, case_dir, case, gt))
             CONSOLE.print(json.dumps(records[-1], indent=1)[:2000])
     if cfg.report is not None and records:
         write_report(records, cfg.report, cfg)
