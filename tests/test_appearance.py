@@ -14,8 +14,8 @@ from nerfuser_ns.appearance import (
     chain_to_reference,
     compose,
     fit_colour_map,
+    fit_colour_map_directions,
     linear_to_srgb,
-    pooled_pairs,
     srgb_to_linear,
 )
 from nerfuser_ns.bench import scenes
@@ -36,6 +36,29 @@ def test_the_estimate_recovers_known_gains():
     np.testing.assert_allclose(fit_colour_map(src, dst), gain_map, atol=1e-9)
     assert fit_colour_map(src[:40], dst[:40]) is None  # too few pixels
     assert fit_colour_map(src, np.full_like(dst, 0.001)) is None  # a 'gain' of 1/1000: no match, not an exposure
+
+
+def test_each_nerfs_advantage_on_its_own_views_cancels_between_the_directions():
+    # Each NeRF renders its own views brighter than the other renders them (the source's own views in the first
+    # direction, the target's in the second): one direction alone is off by that factor, pooling the pixels weights
+    # the directions by their brightness, the geometric mean of the two directions' gains is exact.
+    rng = np.random.default_rng(2)
+    gain_map = np.hstack([np.diag(GAINS), np.zeros((3, 1))])
+    advantage = np.hstack([np.diag([1.25, 1.2, 1.15]), np.zeros((3, 1))])
+    as_map = lambda c, m: apply_colour_map(torch.from_numpy(c), torch.from_numpy(m)).numpy()  # noqa: E731
+    dark, bright = rng.uniform(0.02, 0.3, size=(500, 3)), rng.uniform(0.2, 0.6, size=(3000, 3))
+    own_source = (as_map(dark, advantage), as_map(dark, gain_map))  # the source at its own views
+    own_target = (bright, as_map(as_map(bright, gain_map), advantage))  # the target at its own views
+    np.testing.assert_allclose(fit_colour_map_directions([own_source, own_target]), gain_map, atol=1e-9)
+    one = np.diag(fit_colour_map(*own_source)[:, :3])
+    np.testing.assert_allclose(one, GAINS / [1.25, 1.2, 1.15], rtol=1e-9)
+    pooled = np.diag(fit_colour_map(np.concatenate([own_source[0], own_target[0]]),
+                                    np.concatenate([own_source[1], own_target[1]]))[:, :3])  # fmt: skip
+    assert np.abs(np.log(pooled / GAINS)).max() > 0.05
+    # a direction with too few pixels is left out; none left: no map
+    few = (dark[:10], dark[:10])
+    np.testing.assert_allclose(fit_colour_map_directions([own_source, few]), fit_colour_map(*own_source))
+    assert fit_colour_map_directions([few]) is None
 
 
 def test_misaligned_renders_of_the_same_colours_give_the_identity():
@@ -60,8 +83,6 @@ def test_transfer_functions_and_map_algebra():
     np.testing.assert_allclose(maps[0], KNOWN)
     np.testing.assert_allclose(maps[2], compose(KNOWN, inner))
     assert chain_to_reference(2, 0, {(1, 0): KNOWN})[1] is None  # only 0 -> 1 known: 1 is unreached
-    ci, cj = pooled_pairs([(np.ones((2, 3)), np.zeros((2, 3)))], [(np.full((1, 3), 2.0), np.full((1, 3), 3.0))])
-    assert ci[:, 0].tolist() == [1, 1, 3] and cj[:, 0].tolist() == [0, 0, 2]
 
 
 def test_generated_captures_get_their_own_exposure_and_white_balance(tmp_path):

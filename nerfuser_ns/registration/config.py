@@ -284,6 +284,10 @@ class RegistrationConfig:
     units >= 0.53, rotations >= 10 deg or translations >= 0.4 <= 0.20; scale errors alone barely move it."""
     ncc_downsample: int = 4
     """Block-average both images by this factor before the NCC (tolerates blur and sub-pixel misalignment)."""
+    colour_views: int = 16
+    """Appearance matching: views per checked pair and direction the colour maps are fitted on, evenly spread over
+    each NeRF's views and rendered at half size (each NeRF renders its own views brighter than the other does, by a
+    share that varies from view to view: more views average it out; 0: no colour maps)."""
 
 
 def validate_settings(config: RegistrationConfig) -> Intrinsics:
@@ -308,6 +312,7 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
         (sc.size >= 16, "--sampling.size must be >= 16"),
         (0.0 <= sc.min_view_accumulation <= 1.0, "--sampling.min-view-accumulation must be in [0, 1]"),
         (config.self_check_views >= 0, "--self-check-views must be >= 0"),
+        (config.colour_views >= 0, "--colour-views must be >= 0"),
         (config.ncc_downsample >= 1, "--ncc-downsample must be >= 1"),
         (config.min_registered_views >= 2, "--min-registered-views must be >= 2"),
         (config.umeyama_max_error > 0, "--umeyama-max-error must be > 0"),

@@ -21,6 +21,10 @@ from nerfuser_ns.registration.render_cache import ViewSet, to_uint8
 from nerfuser_ns.registration.sfm import SfMResult
 from nerfuser_ns.renderers import Renderer
 
+COLOUR_REDUCE = 2
+"""The colour fit renders its views at 1/COLOUR_REDUCE of the size: its sums need views, not pixels (measured on the
+validation pair: the same gains within 0.3% from every pixel, every 2nd or every 4th)."""
+
 
 def _gray_blocks(rgb: np.ndarray, factor: int) -> np.ndarray:
     gray = rgb[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32) if rgb.ndim == 3 else rgb
@@ -83,11 +87,30 @@ class CrossRenderCheck:
 
 def _cross_direction(
     src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
-    cfg: RegistrationConfig, acc_src: np.ndarray, colours: list | None = None,
+    cfg: RegistrationConfig, acc_src: np.ndarray,
 ) -> float:
-    scores = view_nccs(src, dst, T_src_to_dst, list(order)[: cfg.self_check_views], intrinsics, cfg, acc_src,
-                       colours=colours)  # fmt: skip
+    scores = view_nccs(src, dst, T_src_to_dst, list(order)[: cfg.self_check_views], intrinsics, cfg, acc_src)
     return float(np.median(scores[np.isfinite(scores)])) if np.isfinite(scores).any() else float("nan")
+
+
+def spread_views(views: ViewSet, count: int) -> Float[np.ndarray, " m"]:
+    """``count`` of the kept views, evenly spread over them (all when there are fewer)."""
+    idx = np.flatnonzero(views.kept)
+    return idx[np.round(np.linspace(0, len(idx) - 1, min(count, len(idx)))).astype(int)]
+
+
+def _colour_pairs(
+    src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, intrinsics: Intrinsics, cfg: RegistrationConfig,
+    acc_src: np.ndarray,
+) -> tuple[Float[np.ndarray, "n 3"], Float[np.ndarray, "n 3"]]:
+    """(src's colours, dst's colours) at the pixels both render opaque, over ``cfg.colour_views`` of src's views
+    rendered at 1/:data:`COLOUR_REDUCE` size: the appearance matching's samples for one direction."""
+    colours: list = []
+    view_nccs(src, dst, T_src_to_dst, spread_views(src, cfg.colour_views), intrinsics, cfg, acc_src,
+              reduce=COLOUR_REDUCE, colours=colours)  # fmt: skip
+    empty = np.zeros((0, 3))
+    return (np.concatenate([empty] + [a.reshape(-1, 3) for a, _ in colours]),
+            np.concatenate([empty] + [b.reshape(-1, 3) for _, b in colours]))  # fmt: skip
 
 
 def view_nccs(
@@ -141,8 +164,9 @@ def cross_render_check(
 ) -> list[CrossRenderCheck]:
     """For each pair (i, j): map views of i through the estimate into j, render j there, NCC against i's renders.
 
-    ``view_order[(i, j)]`` lists i's views to use, best first (default: i's kept views, evenly spread). The same pixel
-    pairs, both directions pooled, give the pair's colour maps (:func:`nerfuser_ns.appearance.fit_colour_map`).
+    ``view_order[(i, j)]`` lists i's views to use, best first (default: i's kept views, evenly spread). The pair's
+    colour maps come from ``cfg.colour_views`` views per direction, evenly spread and rendered small, the two
+    directions' gains averaged (:func:`nerfuser_ns.appearance.fit_colour_map_directions`: why).
     """
     checks = []
     accs = [vs.load_accumulation() for vs in views]
@@ -153,16 +177,19 @@ def cross_render_check(
         def order(a, b):
             if view_order is not None and (a, b) in view_order:
                 return view_order[(a, b)]
-            idx = np.flatnonzero(views[a].kept)
-            return idx[np.round(np.linspace(0, len(idx) - 1, min(cfg.self_check_views, len(idx)))).astype(int)]
+            return spread_views(views[a], cfg.self_check_views)
 
-        i_in_j: list = []
-        j_in_i: list = []
-        s_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), intrinsics, cfg, accs[i], i_in_j)
-        s_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), intrinsics, cfg, accs[j], j_in_i)
-        ci, cj = appearance.pooled_pairs(i_in_j, j_in_i)
-        checks.append(CrossRenderCheck(i, j, s_ij, s_ji, cfg.self_check_views, appearance.fit_colour_map(cj, ci),
-                                       appearance.fit_colour_map(ci, cj), len(ci)))  # fmt: skip
+        s_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), intrinsics, cfg, accs[i])
+        s_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), intrinsics, cfg, accs[j])
+        colour_j_to_i = colour_i_to_j = None
+        pixels = 0
+        if cfg.colour_views > 0:
+            i_own, j_there = _colour_pairs(views[i], renderers[j], T_ij, intrinsics, cfg, accs[i])
+            j_own, i_there = _colour_pairs(views[j], renderers[i], T_ji, intrinsics, cfg, accs[j])
+            colour_j_to_i = appearance.fit_colour_map_directions([(j_there, i_own), (j_own, i_there)])
+            colour_i_to_j = appearance.fit_colour_map_directions([(i_own, j_there), (i_there, j_own)])
+            pixels = len(i_own) + len(j_own)
+        checks.append(CrossRenderCheck(i, j, s_ij, s_ji, cfg.self_check_views, colour_j_to_i, colour_i_to_j, pixels))
     return checks
 
 

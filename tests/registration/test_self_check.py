@@ -4,15 +4,19 @@ per mode and pose source."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
+import torch
 from registration_helpers import WRONG, assert_one_line_error, perturb_second_estimate, run_cli, small_config
 
 from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
+from nerfuser_ns.bench import scenes
 from nerfuser_ns.registration import pipeline as reg_pipeline
+from nerfuser_ns.renderers import RenderBatch
 
 
 def test_ncc_basics():
@@ -37,6 +41,36 @@ def test_self_check_rejects_a_wrong_transform(oc_layout, oc_renderers, oc_record
     bad = reg.cross_render_check(oc_renderers, views, wrong, [(0, 1)], intr, config)[0]
     assert good.score > 0.9
     assert bad.score < config.ncc_threshold
+
+
+class _Gained:
+    """A renderer whose colours carry an exposure and white balance (linear-RGB gains), as another capture's would."""
+
+    def __init__(self, renderer, gains: np.ndarray):
+        self.renderer, self.gains, self.name = renderer, gains, renderer.name
+
+    def cache_key(self) -> str:
+        return f"{self.renderer.cache_key()}|gains {self.gains.tolist()}"
+
+    def render(self, c2w, intrinsics) -> RenderBatch:
+        out = self.renderer.render(c2w, intrinsics)
+        return RenderBatch(scenes.apply_appearance(torch.from_numpy(out.rgb), self.gains).numpy(), out.accumulation)
+
+
+def test_colour_maps_recover_a_known_gain_from_the_cross_renders(oc_renderers, oc_record, work):
+    config = small_config()
+    gains = np.array([1.3, 1.0, 0.75])
+    renderers = [oc_renderers[0], _Gained(oc_renderers[1], gains)]
+    views = [reg.render_views_cached(r, config.sampling, work / "renders") for r in renderers]
+    T = np.stack([np.asarray(n["T_to_reference"]) for n in oc_record["nerfs"]])
+    check = reg.cross_render_check(renderers, views, T, [(0, 1)], config.sampling.intrinsics(), config)[0]
+    assert check.colour_pixels > 10_000
+    # exact renders: what is left is where the estimate and the PNGs' rounding put them
+    np.testing.assert_allclose(np.diag(check.colour_j_to_i[:, :3]), 1 / gains, rtol=0.03)
+    np.testing.assert_allclose(check.colour_j_to_i[:, :3] @ check.colour_i_to_j[:, :3], np.eye(3), atol=1e-9)
+    off = reg.cross_render_check(renderers, views, T, [(0, 1)], config.sampling.intrinsics(),
+                                 dataclasses.replace(config, colour_views=0))[0]  # fmt: skip
+    assert off.colour_j_to_i is None and off.colour_pixels == 0 and off.score == pytest.approx(check.score)
 
 
 @pytest.mark.parametrize("refine", [False, True])
