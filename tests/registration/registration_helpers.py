@@ -27,6 +27,7 @@ def small_config(**kw) -> reg.RegistrationConfig:
     sampling_kw = {"source": "hemisphere", "fov_deg": 60.0, **kw.pop("sampling", {})}
     sampling = reg.PoseSamplingConfig(num_poses=kw.pop("num_poses", 20), width=W, height=H, **sampling_kw)
     kw.setdefault("mode", "sfm")  # the SfM mode's tests; the other modes build their own configs
+    kw.setdefault("colour_views", 2)  # as few as the NCC views: the colour fit has tests of its own
     return reg.RegistrationConfig(sampling=sampling, self_check_views=kw.pop("self_check_views", 2), **kw)
 
 

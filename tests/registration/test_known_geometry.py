@@ -51,7 +51,7 @@ def plane_depth(c2w: np.ndarray, intr: Intrinsics) -> np.ndarray:
 def small_config(**kw) -> reg.RegistrationConfig:
     sampling = reg.PoseSamplingConfig(source="training", width=W, height=H, fov_deg=60.0,
                                       max_training_poses=kw.pop("views", 16))  # fmt: skip
-    return reg.RegistrationConfig(mode="known-geometry", sampling=sampling, self_check_views=2, **kw)
+    return reg.RegistrationConfig(mode="known-geometry", sampling=sampling, self_check_views=2, colour_views=2, **kw)
 
 
 def gt_transform(layout, names) -> np.ndarray:

@@ -279,7 +279,7 @@ QUIET = Console(quiet=True)
 
 def graph_config(**kw) -> reg.RegistrationConfig:
     sampling = reg.PoseSamplingConfig(source="training", width=W, height=H, fov_deg=60.0, max_training_poses=16)
-    return reg.RegistrationConfig(mode="graph", sampling=sampling, self_check_views=2, **kw)
+    return reg.RegistrationConfig(mode="graph", sampling=sampling, self_check_views=2, colour_views=2, **kw)
 
 
 def truth_in(layout, ref: str, name: str) -> np.ndarray:

@@ -58,7 +58,7 @@ class _Gained:
 
 
 def test_colour_maps_recover_a_known_gain_from_the_cross_renders(oc_renderers, oc_record, work):
-    config = small_config()
+    config = small_config(colour_views=reg.RegistrationConfig.colour_views)
     gains = np.array([1.3, 1.0, 0.75])
     renderers = [oc_renderers[0], _Gained(oc_renderers[1], gains)]
     views = [reg.render_views_cached(r, config.sampling, work / "renders") for r in renderers]
