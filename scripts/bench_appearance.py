@@ -35,10 +35,12 @@ from rich.console import Console
 
 from nerfuser_ns import runs
 from nerfuser_ns.bench.evaluation import SceneRuns, blend_metrics
+from nerfuser_ns.bench.ground_truth import load_ground_truth_captures, nerf_to_world_from_captures, score_registration
 from nerfuser_ns.bench.scenes import apply_appearance, benchmark_params, generate_scene
 from nerfuser_ns.bench.training import train_captures
 from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.registration import read_registration
 from nerfuser_ns.scripts import register
 from nerfuser_ns.spec import read_registered_nerfs
 
@@ -103,6 +105,18 @@ def _gains(scene: SceneRuns) -> list[np.ndarray]:
     return out
 
 
+def registration_errors(scene: SceneRuns, reg: Path) -> dict:
+    """The registration against the scene's truth (the paper's errors of the worst NeRF) and what it chose."""
+    record = read_registration(reg)
+    truth = nerf_to_world_from_captures(load_ground_truth_captures(scene.scene_dir, scene.captures),
+                                        [runs.read_dataparser_transform(p) for p in scene.configs])  # fmt: skip
+    scored = score_registration(record, truth)
+    worst = max((n["ground_truth"] for n in scored["nerfs"]), key=lambda g: g["r_err_deg"] or np.inf)
+    choice = record.get("sampling_choice") or {}
+    return {**{k: worst[k] for k in ("r_err_deg", "t_err", "s_err", "failure")},
+            "source": choice.get("source"), "mode": choice.get("mode", record["settings"].get("mode"))}
+
+
 def measure(scene: SceneRuns, reg: Path, cfg: BenchAppearance, console: Console) -> dict:
     layout = scene.ground_truth["layout"]
     gamma, tau = PAPER_OBJECT_CENTRIC if layout == "object-centric" else PAPER_MISSION_BAY
@@ -120,7 +134,8 @@ def measure(scene: SceneRuns, reg: Path, cfg: BenchAppearance, console: Console)
     target = apply_appearance(target, None if np.array_equal(gains[0], np.ones(3)) else gains[0])
     result: dict = {"scene": str(scene.scene_dir), "gains": [g.tolist() for g in gains],
                     "true_maps": [(gains[0] / g).tolist() for g in gains],  # reference colours from NeRF i's
-                    "fitted_maps": [None if m is None else np.diag(m[:, :3]).tolist() for m in maps]}  # fmt: skip
+                    "fitted_maps": [None if m is None else np.diag(m[:, :3]).tolist() for m in maps],
+                    "registration": registration_errors(scene, reg)}  # fmt: skip
     # the true maps applied to the same runs: what matching could reach with an exact fit (plain: the identity,
     # which is the unmatched blend)
     true_maps = [np.hstack([np.diag(gains[0] / g), np.zeros((3, 1))]) for g in gains]
@@ -165,6 +180,12 @@ def write_report(path: Path, data: dict) -> None:
     lines += ["", "The plain scene's captures have no difference (true maps: the identity); fitted: "
               + "; ".join(f"capture {i} {None if f is None else np.round(f, 3).tolist()}"
                           for i, f in enumerate(plain["fitted_maps"]))]  # fmt: skip
+    if "registration" in jit:  # reports of earlier runs lack it
+        lines += ["", "Registrations against the scene's truth (the worst NeRF; the paper's failure rule: 5 deg, 0.2, "
+                  "0.1): " + "; ".join(
+                      f"{label} {r['r_err_deg']:.2f} deg, t_err {r['t_err']:.3f}, s_err {r['s_err']:.3f}"
+                      f"{' (FAILURE)' if r['failure'] else ''}, {r['source']} poses, mode {r['mode']}"
+                      for label, r in (("plain", plain["registration"]), ("jittered", jit["registration"])))]
     oracle = "true_matched" in jit  # reports of earlier runs lack it
     columns = [(plain, "unmatched"), (plain, "matched"), (jit, "unmatched"), (jit, "matched")]
     columns += [(jit, "true_matched")] if oracle else []

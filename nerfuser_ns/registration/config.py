@@ -272,6 +272,11 @@ class RegistrationConfig:
     per camera (measured: median rotation error 2-3x lower on CPU-trained nerfacto NeRFs)."""
     refine_loss_scale_px: float = 1.0
     """Refinement: soft-L1 loss scale in pixels (reprojection errors well above it barely pull)."""
+    camera_check: bool = True
+    """Fail when a NeRF's SfM cameras disagree with its final transform beyond the paper's failure rule (their
+    median: 5 deg or 0.2 reference units): the refinement then followed points seen across NeRFs that the cameras
+    contradict, and one of the two links unrelated content (measured: a pair linked 13 deg wrong, which the
+    self-check passed at NCC 0.41, at 9.2 deg; correct registrations 0.2-0.4 deg)."""
     reference: int = 0
     """Index of the NeRF whose frame is the common frame."""
     min_registered_views: int = 2

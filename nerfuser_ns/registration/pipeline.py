@@ -60,7 +60,9 @@ from nerfuser_ns.registration.render_cache import (
     render_views_cached,
 )
 from nerfuser_ns.registration.self_check import (
+    CrossRenderCheck,
     best_views,
+    camera_failure,
     covisibility,
     cross_render_check,
     failure_message,
@@ -92,7 +94,9 @@ def _training_cameras_available(renderer: Renderer) -> str | None:
 
 def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) -> list[SamplingChoice]:
     """The pose-sampling settings to try, in order: the user's choice, or for ``source="auto"`` the training poses
-    (then training + hemisphere, then the hemisphere) when every run's dataset is readable, else the hemisphere.
+    (then training + hemisphere, then the hemisphere) when every run's dataset is readable, else the hemisphere; in
+    mode ``sfm`` the automatic choice ends with known geometry on the most views (training + hemisphere, else the
+    hemisphere).
 
     The render camera defaults to the reference run's training cameras' horizontal field of view and aspect, with
     ``size`` pixels along the longer side; :data:`DEFAULT_RENDER_SIZE` when they are unknown.
@@ -131,10 +135,18 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
         sources = [("training", "every run's dataset is readable"),
                    ("both", "the training poses alone did not register"),
                    ("hemisphere", "neither the training poses nor training + hemisphere registered")]  # fmt: skip
+    modes = [config.mode] * len(sources)
+    if sc.source == "auto" and config.mode == "sfm":
+        # SfM links views by their features alone; known geometry also knows where each view looks, and registers
+        # pairs that SfM splits into separate models or merges wrongly (docs/known_geometry.md)
+        widest = "hemisphere" if missing else "both"  # the most views
+        sources.append((widest, "SfM registered with no pose source: known geometry (ours, --mode known-geometry) "
+                                "on the most views"))  # fmt: skip
+        modes.append("known-geometry")
     out = []
-    for source, why in sources:
+    for (source, why), mode in zip(sources, modes, strict=True):
         sampling = replace(sc, source=source, width=int(width), height=int(height), fov_deg=float(fov))
-        out.append(SamplingChoice(replace(config, sampling=sampling), f"{why}; {camera_note}"))
+        out.append(SamplingChoice(replace(config, mode=mode, sampling=sampling), f"{why}; {camera_note}"))
     return out
 
 
@@ -161,19 +173,21 @@ def register(
     tried = []
     for n, choice in enumerate(choices):
         sc = choice.config.sampling
-        console.print(f"pose sampling: [bold]{sc.source}[/] ({choice.reason}), renders {sc.width}x{sc.height} at "
-                      f"{sc.fov_deg:.1f} deg")  # fmt: skip
+        mode = "" if choice.config.mode == config.mode else f", mode [bold]{choice.config.mode}[/]"
+        console.print(f"pose sampling: [bold]{sc.source}[/]{mode} ({choice.reason}), renders {sc.width}x{sc.height} "
+                      f"at {sc.fov_deg:.1f} deg")  # fmt: skip
         try:
             result = register_once(renderers, choice.config, work_dir, console)
         except RegistrationError as e:
             if n + 1 == len(choices):
                 raise
             reason = str(e).splitlines()[0]
-            tried.append({"source": sc.source, "error": reason})
-            console.print(f"[yellow]{sc.source} poses did not register: {reason}[/]")
+            tried.append({"source": sc.source, "mode": choice.config.mode, "error": reason})
+            console.print(f"[yellow]{sc.source} poses did not register ({choice.config.mode}): {reason}[/]")
             continue
         result.sampling_choice = {"requested": config.sampling.source, "source": sc.source,
-                                  "reason": choice.reason, "tried_before": tried}  # fmt: skip
+                                  "mode": choice.config.mode, "reason": choice.reason,
+                                  "tried_before": tried}  # fmt: skip
         return result
     raise AssertionError("unreachable")  # pragma: no cover
 
@@ -206,7 +220,7 @@ def register_once(
     sfm = run_sfm(views, intr, config.sfm, work_dir, console)
     for step in ("features", "matching", "mapping"):
         timings[step] = 0.0 if sfm.reused else sfm.timings.get(step, 0.0)
-    check_registered_views(sfm, views, min_views)
+    check_registered_views(sfm, views, min_views, config.sampling.source)
 
     # 3. Per NeRF: its SIM(3) into the SfM frame C, then into the reference frame; 4. refined.
     t0 = time.perf_counter()
@@ -234,10 +248,19 @@ def register_once(
         renderers=renderers, views=views, sfm=sfm, estimates=estimates, T_to_ref=T_to_ref, T_to_C=T_to_C,
         refinement=refinement, overlap=overlap, checks=checks, config=config, intrinsics=intr, timings=timings,
     )
-    failure = failure_message(checks, [r.name for r in renderers], config)
+    failure = check_failure(result, checks, config)
     if failure is not None:
         raise RegistrationFailed(failure, result)
     return result
+
+
+def check_failure(
+    result: RegistrationResult, checks: Sequence[CrossRenderCheck], config: RegistrationConfig
+) -> str | None:
+    """Why the solution cannot be trusted, in one line (cameras that contradict their transform, then a failed
+    cross-render self-check), or None."""
+    cameras = camera_failure(result.nerfs, config) if config.camera_check else None
+    return cameras or failure_message(checks, [n.name for n in result.nerfs], config)
 
 
 MIN_DEPTH_SIGMA = 1e-4
@@ -332,7 +355,7 @@ def register_known_geometry(
         overlap=overlap, checks=checks, config=config, timings=timings, known_geometry=summary,
         refinement=refinement,
     )
-    failure = failure_message(checks, names, config)
+    failure = check_failure(result, checks, config)
     if failure is not None:
         raise RegistrationFailed(failure, result)
     return result

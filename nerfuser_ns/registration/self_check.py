@@ -2,7 +2,8 @@
 wrong model).
 
 For a spanning tree of NeRF pairs (i, j) chosen by their SfM overlap: views of i are mapped through the solution
-into j's frame, rendered by j, and compared with i's own renders by normalised cross-correlation (and back).
+into j's frame, rendered by j, and compared with i's own renders by normalised cross-correlation (and back). Before
+it, each NeRF's SfM cameras are checked against its final transform (:func:`camera_failure`).
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from jaxtyping import Float
@@ -20,6 +22,9 @@ from nerfuser_ns.registration.config import RegistrationConfig, suggestion
 from nerfuser_ns.registration.render_cache import ViewSet, to_uint8
 from nerfuser_ns.registration.sfm import SfMResult
 from nerfuser_ns.renderers import Renderer
+
+if TYPE_CHECKING:  # record.py's types, for annotations only
+    from nerfuser_ns.registration.record import NerfResult
 
 COLOUR_REDUCE = 2
 """The colour fit renders its views at 1/COLOUR_REDUCE of the size: its sums need views, not pixels (measured on the
@@ -232,6 +237,29 @@ def best_views(
 def passed(check: CrossRenderCheck, config: RegistrationConfig) -> bool:
     """Whether a pair's cross-render NCC reaches the threshold (a pair that saw nothing in common fails)."""
     return bool(np.isfinite(check.score) and check.score >= config.ncc_threshold)
+
+
+def camera_failure(nerfs: Sequence[NerfResult], config: RegistrationConfig) -> str | None:
+    """The one-line error for the first NeRF whose SfM cameras disagree with its final transform beyond the paper's
+    failure rule (:func:`sim3.is_failure` on the medians over its cameras, centres in reference units), else None.
+
+    The estimate follows the cameras, so only a refinement that followed points seen across NeRFs against them (or
+    cameras that disagree among themselves) gets here: one of the two links unrelated content. Modes without SfM
+    cameras have no residuals and pass.
+    """
+    for n in nerfs:
+        rot, centre = n.residuals.rotation_deg_median, n.residuals.centre_median
+        if rot is None or centre is None:
+            continue
+        centre_ref = centre * n.scale_to_reference
+        if sim3.is_failure(rot, centre_ref, 0.0):
+            return (
+                f"{n.name}: its SfM cameras disagree with its registered transform by {rot:.1f} deg and "
+                f"{centre_ref:.3f} reference units (median; the paper's failure rule: 5 deg, 0.2): the bundle "
+                f"adjustment followed points seen across NeRFs that its cameras contradict, so the SfM probably merged "
+                f"unrelated content; {suggestion(config.sampling.source)} (or --no-camera-check to keep it)"
+            )
+    return None
 
 
 LIKELY_CAUSE = {

@@ -21,7 +21,14 @@ from rich.console import Console
 from nerfuser_ns import sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.files import atomic_path, write_text_atomic
-from nerfuser_ns.registration.config import CONSOLE, SUGGESTION, RegistrationError, SfMConfig, content_hash, json_matrix
+from nerfuser_ns.registration.config import (
+    CONSOLE,
+    RegistrationError,
+    SfMConfig,
+    content_hash,
+    json_matrix,
+    suggestion,
+)
 from nerfuser_ns.registration.render_cache import ViewSet
 
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inverse
@@ -194,13 +201,16 @@ def run_sfm(
     return result
 
 
-def check_registered_views(sfm: SfMResult, views: Sequence[ViewSet], min_views: int) -> None:
+def check_registered_views(
+    sfm: SfMResult, views: Sequence[ViewSet], min_views: int, source: str = "hemisphere"
+) -> None:
     """Every NeRF needs ``min_views`` views in the largest SfM model; the error says whether its views formed a
-    separate model (no overlap found) or too few registered."""
+    separate model (no overlap found) or too few registered, and what to try after poses from ``source``."""
     names = [vs.name for vs in views]
+    advice = suggestion(source)
     if not sfm.model_counts:
         raise RegistrationError(
-            f"SfM reconstructed nothing from the renders of {', '.join(names)} (too few matches); {SUGGESTION}"
+            f"SfM reconstructed nothing from the renders of {', '.join(names)} (too few matches); {advice}"
         )
     largest = sfm.model_counts[0]
     for i in range(len(views)):
@@ -211,11 +221,11 @@ def check_registered_views(sfm: SfMResult, views: Sequence[ViewSet], min_views: 
             together = [names[j] for j in range(len(views)) if largest[j] >= min_views]
             raise RegistrationError(
                 f"{names[i]}: its views form a separate SfM model from {', '.join(together) or 'the others'} "
-                f"(no overlap found between the NeRFs); {SUGGESTION}"
+                f"(no overlap found between the NeRFs); {advice}"
             )
         raise RegistrationError(
             f"{names[i]}: only {largest[i]} of {int(views[i].kept.sum())} views registered in the SfM model "
-            f"(need {min_views}); {SUGGESTION}"
+            f"(need {min_views}); {advice}"
         )
 
 

@@ -137,7 +137,10 @@ def test_umeyama_and_reference_options(oc_layout, oc_renderers, oc_record, work)
 
 def test_automatic_sampling_uses_training_poses_when_datasets_are_readable(oc_layout, oc_renderers):
     choices = reg.resolve_sampling(oc_renderers, reg.RegistrationConfig())
-    assert [c.config.sampling.source for c in choices] == ["training", "both", "hemisphere"]
+    assert [c.config.sampling.source for c in choices] == ["training", "both", "hemisphere", "both"]
+    # SfM first with every source, known geometry last
+    assert [c.config.mode for c in choices] == ["sfm"] * 3 + ["known-geometry"]
+    assert "SfM registered with no pose source" in choices[-1].reason
     # the render camera is the training cameras' (field of view, aspect), the longer side `size` pixels
     intr = oc_layout.captures[0].intrinsics  # 240x180 at 65 deg
     sc = choices[0].config.sampling
@@ -155,13 +158,18 @@ def test_automatic_sampling_uses_training_poses_when_datasets_are_readable(oc_la
 def test_automatic_sampling_without_datasets_uses_the_hemisphere(oc_renderers):
     blind = [MirroredRenderer(r) for r in oc_renderers]  # no training poses, no training cameras
     choices = reg.resolve_sampling(blind, reg.RegistrationConfig())
-    assert [c.config.sampling.source for c in choices] == ["hemisphere"]
+    assert [(c.config.sampling.source, c.config.mode) for c in choices] == [("hemisphere", "sfm"),
+                                                                            ("hemisphere", "known-geometry")]
     assert "training poses unavailable" in choices[0].reason
     sc = choices[0].config.sampling
     assert (sc.width, sc.height, sc.fov_deg) == reg.DEFAULT_RENDER_SIZE
     # one run without its dataset is enough to need the hemisphere for all
     mixed = reg.resolve_sampling([oc_renderers[0], blind[1]], reg.RegistrationConfig())
-    assert [c.config.sampling.source for c in mixed] == ["hemisphere"]
+    assert [c.config.sampling.source for c in mixed] == ["hemisphere", "hemisphere"]
+    # a mode given explicitly keeps to itself
+    kg = reg.resolve_sampling(oc_renderers, reg.RegistrationConfig(mode="known-geometry"))
+    assert [(c.config.sampling.source, c.config.mode) for c in kg] == [
+        ("training", "known-geometry"), ("both", "known-geometry"), ("hemisphere", "known-geometry")]
 
 
 def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypatch):
@@ -179,10 +187,25 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     assert tried == ["training", "both"]
     assert record.sampling_choice["source"] == "both"
     assert record.sampling_choice["tried_before"] == [
-        {"source": "training", "error": "a: its views form a separate SfM model"}]
+        {"source": "training", "mode": "sfm", "error": "a: its views form a separate SfM model"}]
     text = console.export_text()
-    for line in ("pose sampling: training", "training poses did not register", "pose sampling: both"):
+    for line in ("pose sampling: training", "training poses did not register (sfm)", "pose sampling: both"):
         assert line in text, line
+    # SfM failing with every source: known geometry last, said so
+    tried.clear()
+
+    def sfm_fails(renderers, config, work_dir, console):
+        tried.append((config.sampling.source, config.mode))
+        if config.mode == "sfm":
+            raise reg.RegistrationError("b: its SfM cameras disagree with its registered transform")
+        return SimpleNamespace(sampling_choice=None)
+
+    monkeypatch.setattr(reg_pipeline, "register_once", sfm_fails)
+    console = Console(record=True, width=200)
+    record = reg.register(oc_renderers, reg.RegistrationConfig(), work, console=console)
+    assert tried == [("training", "sfm"), ("both", "sfm"), ("hemisphere", "sfm"), ("both", "known-geometry")]
+    assert (record.sampling_choice["source"], record.sampling_choice["mode"]) == ("both", "known-geometry")
+    assert "pose sampling: both, mode known-geometry (SfM registered with no pose source" in console.export_text()
     # every choice failing: the last error is the one raised
     monkeypatch.setattr(reg_pipeline, "register_once", lambda *a: (_ for _ in ()).throw(reg.RegistrationError("no")))
     with pytest.raises(reg.RegistrationError, match="no"):

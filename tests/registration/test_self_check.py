@@ -89,10 +89,59 @@ def test_register_fails_when_the_estimate_is_wrong(
         monkeypatch.setattr(reg_pipeline, "refine_transforms", perturbed_refine)
     else:
         perturb_second_estimate(monkeypatch)
-    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, refine=refine)
+    # (the camera check would name the refined case first: next test)
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, refine=refine, camera_check=False)
     assert_one_line_error(rc, out, err, "capture_a and capture_b", "self-check failed")
     rejected = json.loads((work / "rejected_registration.json").read_text())
     assert rejected["pairs"][0]["self_check"]["passed"] is False
+
+
+def _refinement_turned(monkeypatch, degrees: float) -> None:
+    """The bundle adjustment's result for NeRF B turned by ``degrees``: a refinement that followed wrong points."""
+    real_refine = reg.refine_transforms
+    turn = sim3.make_sim3(sim3.so3_exp(np.radians([0.0, degrees, 0.0])))
+
+    def turned(*args, **kw):
+        T, summary = real_refine(*args, **kw)
+        T = T.copy()
+        T[1] = turn @ T[1]
+        return T, summary
+
+    monkeypatch.setattr(reg_pipeline, "refine_transforms", turned)
+
+
+def test_cameras_that_contradict_the_refined_transform_are_refused(oc_renderers, oc_record, work, monkeypatch,
+                                                                     tmp_path, capsys):
+    # The pair of benchmarks that passed the self-check 13 deg wrong had its refinement 9.2 deg from its cameras.
+    assert max(n["residuals"]["rotation_deg_median"] for n in oc_record["nerfs"]) < 0.5  # the correct pair: passes
+    _refinement_turned(monkeypatch, 9.0)
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work)
+    assert_one_line_error(rc, out, err, "capture_b: its SfM cameras disagree with its registered transform by 9.0 deg",
+                          "--no-camera-check")
+    rejected = json.loads((work / "rejected_registration.json").read_text())
+    assert rejected["nerfs"][1]["residuals"]["rotation_deg_median"] == pytest.approx(9.0, abs=0.3)
+    # 4 deg is within the paper's failure rule: the camera check passes it (the cross-render check judges it)
+    _refinement_turned(monkeypatch, 4.0)
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, self_check_views=0)
+    assert rc == 0, err
+
+
+@pytest.mark.parametrize(("rotation", "centre", "scale", "fails"),
+                         [(0.3, 0.01, 1.0, False), (5.5, 0.01, 1.0, True), (0.3, 0.3, 1.0, True),
+                          (0.3, 0.3, 0.5, False), (None, None, 1.0, False)])
+def test_the_camera_check_applies_the_failure_rule_in_reference_units(rotation, centre, scale, fails):
+    from types import SimpleNamespace
+
+    from nerfuser_ns.registration.self_check import camera_failure
+
+    nerf = SimpleNamespace(name="b", scale_to_reference=scale,
+                           residuals=SimpleNamespace(rotation_deg_median=rotation, centre_median=centre))
+    ok = SimpleNamespace(name="a", scale_to_reference=1.0,
+                         residuals=SimpleNamespace(rotation_deg_median=0.1, centre_median=0.0))
+    message = camera_failure([ok, nerf], reg.RegistrationConfig())
+    assert (message is not None) == fails
+    if fails:
+        assert message.startswith("b: its SfM cameras disagree")
 
 
 @pytest.mark.parametrize("mode", ["sfm", "known-geometry", "graph"])

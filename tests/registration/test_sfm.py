@@ -46,3 +46,16 @@ def test_pose_guided_pairs_are_linear_in_the_image_count(tmp_path):
     assert len(pairs) <= 120 * (4 + 2 * 6)
     n_ab = sum(a.startswith("a/") and b.startswith("b/") for a, b in pairs)
     assert n_ab >= 40 * 6  # every image of a meets 6 views of b (and vice versa)
+
+
+@pytest.mark.parametrize("source", ["hemisphere", "training", "both"])
+def test_separate_models_advise_what_fits_the_pose_source(source):
+    # after the training poses, advice to render "the run's training poses" would send the user in a circle
+    from types import SimpleNamespace
+
+    views = [SimpleNamespace(name=n, kept=np.ones(8, bool)) for n in ("a", "b")]
+    sfm = SimpleNamespace(model_counts=[[8, 0], [0, 8]])
+    with pytest.raises(reg.RegistrationError, match="b: its views form a separate SfM model from a") as e:
+        reg_sfm.check_registered_views(sfm, views, 2, source)
+    assert ("--sampling.source training|both" in str(e.value)) == (source == "hemisphere")
+    assert ("--mode known-geometry" in str(e.value)) == (source != "hemisphere")
