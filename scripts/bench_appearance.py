@@ -111,7 +111,8 @@ def registration_errors(scene: SceneRuns, reg: Path) -> dict:
     truth = nerf_to_world_from_captures(load_ground_truth_captures(scene.scene_dir, scene.captures),
                                         [runs.read_dataparser_transform(p) for p in scene.configs])  # fmt: skip
     scored = score_registration(record, truth)
-    worst = max((n["ground_truth"] for n in scored["nerfs"]), key=lambda g: g["r_err_deg"] or np.inf)
+    worst = max((n["ground_truth"] for n in scored["nerfs"]),
+                key=lambda g: np.inf if g["r_err_deg"] is None else g["r_err_deg"])  # None: NaN, a failure
     choice = record.get("sampling_choice") or {}
     return {**{k: worst[k] for k in ("r_err_deg", "t_err", "s_err", "failure")},
             "source": choice.get("source"), "mode": choice.get("mode", record["settings"].get("mode"))}
