@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from registration_helpers import WRONG, assert_one_line_error, perturb_second_estimate, run_cli, small_config
+from registration_helpers import assert_one_line_error, perturb_second_estimate, run_cli, small_config
 
 from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
@@ -73,29 +73,6 @@ def test_colour_maps_recover_a_known_gain_from_the_cross_renders(oc_renderers, o
     assert off.colour_j_to_i is None and off.colour_pixels == 0 and off.score == pytest.approx(check.score)
 
 
-@pytest.mark.parametrize("refine", [False, True])
-def test_register_fails_when_the_estimate_is_wrong(
-    oc_renderers, oc_record, work, monkeypatch, tmp_path, capsys, refine
-):
-    if refine:  # the refinement would correct a wrong start (next test): break its output instead
-        real_refine = reg.refine_transforms
-
-        def perturbed_refine(*args, **kw):
-            T, summary = real_refine(*args, **kw)
-            T = T.copy()
-            T[1] = WRONG @ T[1]
-            return T, summary
-
-        monkeypatch.setattr(reg_pipeline, "refine_transforms", perturbed_refine)
-    else:
-        perturb_second_estimate(monkeypatch)
-    # (the camera check would name the refined case first: next test)
-    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, refine=refine, camera_check=False)
-    assert_one_line_error(rc, out, err, "capture_a and capture_b", "self-check failed")
-    rejected = json.loads((work / "rejected_registration.json").read_text())
-    assert rejected["pairs"][0]["self_check"]["passed"] is False
-
-
 def _refinement_turned(monkeypatch, degrees: float) -> None:
     """The bundle adjustment's result for NeRF B turned by ``degrees``: a refinement that followed wrong points."""
     real_refine = reg.refine_transforms
@@ -108,6 +85,21 @@ def _refinement_turned(monkeypatch, degrees: float) -> None:
         return T, summary
 
     monkeypatch.setattr(reg_pipeline, "refine_transforms", turned)
+
+
+@pytest.mark.parametrize("refine", [False, True])
+def test_register_fails_when_the_estimate_is_wrong(
+    oc_renderers, oc_record, work, monkeypatch, tmp_path, capsys, refine
+):
+    if refine:  # the refinement would correct a wrong start (test_refine.py): break its output instead
+        _refinement_turned(monkeypatch, 40.0)
+    else:
+        perturb_second_estimate(monkeypatch)
+    # (the camera check would refuse it first: its own test follows)
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, refine=refine, camera_check=False)
+    assert_one_line_error(rc, out, err, "capture_a and capture_b", "self-check failed")
+    rejected = json.loads((work / "rejected_registration.json").read_text())
+    assert rejected["pairs"][0]["self_check"]["passed"] is False
 
 
 def test_cameras_that_contradict_the_refined_transform_are_refused(oc_renderers, oc_record, work, monkeypatch,
