@@ -253,11 +253,14 @@ def camera_failure(nerfs: Sequence[NerfResult], config: RegistrationConfig) -> s
             continue
         centre_ref = centre * n.scale_to_reference
         if sim3.is_failure(rot, centre_ref, 0.0):
+            why = "its cameras disagree among themselves"
+            if config.refine:
+                why = "the bundle adjustment followed points seen across NeRFs that its cameras contradict"
             return (
                 f"{n.name}: its SfM cameras disagree with its registered transform by {rot:.1f} deg and "
-                f"{centre_ref:.3f} reference units (median; the paper's failure rule: 5 deg, 0.2): the bundle "
-                f"adjustment followed points seen across NeRFs that its cameras contradict, so the SfM probably merged "
-                f"unrelated content; {suggestion(config.sampling.source)} (or --no-camera-check to keep it)"
+                f"{centre_ref:.3f} reference units (median; the paper's failure rule: 5 deg, 0.2): {why}, so the SfM "
+                f"probably merged unrelated content; {suggestion(config.sampling.source)} (or --no-camera-check to "
+                f"keep it)"
             )
     return None
 

@@ -134,6 +134,8 @@ def test_the_camera_check_applies_the_failure_rule_in_reference_units(rotation, 
     assert (message is not None) == fails
     if fails:
         assert message.startswith("b: its SfM cameras disagree")
+        assert "bundle adjustment" in message  # the likely cause: without refinement, cameras among themselves
+        assert "among themselves" in camera_failure([nerf], reg.RegistrationConfig(refine=False))
 
 
 @pytest.mark.parametrize("mode", ["sfm", "known-geometry", "graph"])
