@@ -75,7 +75,8 @@ class PoseSamplingConfig:
     source: Literal["auto", "hemisphere", "training", "both"] = "auto"
     """Poses to render: the paper's hemisphere, the run's own training poses, or both. ``auto``: the training poses
     when every run's dataset is readable, then training + hemisphere, then the hemisphere alone if a choice does not
-    register; the hemisphere when a dataset is gone. What was chosen, and why, is printed and recorded."""
+    register; the hemisphere when a dataset is gone; in mode sfm, known geometry on the most views last. What was
+    chosen, and why, is printed and recorded."""
     num_poses: int = 32
     """Hemisphere poses per NeRF (the paper uses 32 on object scenes, 60 on ScanNet)."""
     radius: float = 1.0
