@@ -252,10 +252,15 @@ def chain_from_reference(
     return T
 
 
+def gives_depth(renderer: Renderer) -> bool:
+    """Whether the renderer can render depth beside the images (its ``render`` takes ``depth``)."""
+    return "depth" in inspect.signature(renderer.render).parameters
+
+
 def check_depth(renderers: Sequence[Renderer]) -> None:
     """Before anything is rendered: every renderer gives depth (the known-geometry and graph modes lift with it)."""
     for r in renderers:
-        if "depth" not in inspect.signature(r.render).parameters:
+        if not gives_depth(r):
             raise RegistrationError(f"{r.name}: its renderer gives no depth; use --mode sfm")
 
 

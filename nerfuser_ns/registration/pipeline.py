@@ -46,6 +46,7 @@ from nerfuser_ns.registration.pairwise import (
     check_depth,
     check_views,
     choose_hypothesis,
+    gives_depth,
     matches_per_pair,
     pair_hypotheses,
     pair_summary,
@@ -96,7 +97,7 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
     """The pose-sampling settings to try, in order: the user's choice, or for ``source="auto"`` the training poses
     (then training + hemisphere, then the hemisphere) when every run's dataset is readable, else the hemisphere; in
     mode ``sfm`` the automatic choice ends with known geometry on the most views (training + hemisphere, else the
-    hemisphere).
+    hemisphere) when every renderer gives depth.
 
     The render camera defaults to the reference run's training cameras' horizontal field of view and aspect, with
     ``size`` pixels along the longer side; :data:`DEFAULT_RENDER_SIZE` when they are unknown.
@@ -136,7 +137,7 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
                    ("both", "the training poses alone did not register"),
                    ("hemisphere", "neither the training poses nor training + hemisphere registered")]  # fmt: skip
     modes = [config.mode] * len(sources)
-    if sc.source == "auto" and config.mode == "sfm":
+    if sc.source == "auto" and config.mode == "sfm" and all(gives_depth(r) for r in renderers):
         # SfM links views by their features alone; known geometry also knows where each view looks, and registers
         # pairs that SfM splits into separate models or merges wrongly (docs/known_geometry.md)
         widest = "hemisphere" if missing else "both"  # the most views

@@ -158,14 +158,18 @@ def test_automatic_sampling_uses_training_poses_when_datasets_are_readable(oc_la
 def test_automatic_sampling_without_datasets_uses_the_hemisphere(oc_renderers):
     blind = [MirroredRenderer(r) for r in oc_renderers]  # no training poses, no training cameras
     choices = reg.resolve_sampling(blind, reg.RegistrationConfig())
-    assert [(c.config.sampling.source, c.config.mode) for c in choices] == [("hemisphere", "sfm"),
-                                                                            ("hemisphere", "known-geometry")]
+    assert [(c.config.sampling.source, c.config.mode) for c in choices] == [("hemisphere", "sfm")]  # no depth either
     assert "training poses unavailable" in choices[0].reason
     sc = choices[0].config.sampling
     assert (sc.width, sc.height, sc.fov_deg) == reg.DEFAULT_RENDER_SIZE
     # one run without its dataset is enough to need the hemisphere for all
     mixed = reg.resolve_sampling([oc_renderers[0], blind[1]], reg.RegistrationConfig())
-    assert [c.config.sampling.source for c in mixed] == ["hemisphere", "hemisphere"]
+    assert [c.config.sampling.source for c in mixed] == ["hemisphere"]
+    # runs that render depth but lost their datasets: known geometry on the hemisphere last
+    datasetless = [SimpleNamespace(name=r.name, render=r.render, training_poses=lambda: None) for r in oc_renderers]
+    choices = reg.resolve_sampling(datasetless, reg.RegistrationConfig())
+    assert [(c.config.sampling.source, c.config.mode) for c in choices] == [("hemisphere", "sfm"),
+                                                                            ("hemisphere", "known-geometry")]
     # a mode given explicitly keeps to itself
     kg = reg.resolve_sampling(oc_renderers, reg.RegistrationConfig(mode="known-geometry"))
     assert [(c.config.sampling.source, c.config.mode) for c in kg] == [
