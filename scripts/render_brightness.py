@@ -89,7 +89,7 @@ def embedding_brightness(config: Path, num_views: int) -> dict[str, np.ndarray]:
     for label in ("average embedding", "own embedding"):
         rendered, shown = np.zeros(3), np.zeros(3)
         for i in np.linspace(0, len(views.cameras) - 1, num_views).round().astype(int):
-            bundle = views.cameras.generate_rays(camera_indices=int(i), keep_shape=True)
+            bundle = views.cameras.generate_rays(camera_indices=int(i), keep_shape=True).to(model.device)
             model.field.train(label == "own embedding")  # nerfacto's field picks the image's embedding when training
             try:
                 with torch.no_grad():
