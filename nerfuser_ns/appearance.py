@@ -24,7 +24,9 @@ direction alone is biased by its NeRF's advantage; the geometric mean cancels th
 0-5%). That advantage varies from view to view, so the fit takes ``colour_views`` views per direction evenly spread
 over the run's views (the same pair, every evenly spread subset: worst channel 6% off on average and up to 11% with
 4 views, 5% and up to 7% with 12). The pairs' maps are chained along the self-check's spanning tree to the reference
-(:func:`chain_to_reference`).
+(:func:`chain_to_reference`). Last, the reference NeRF's own map to its training images
+(:mod:`nerfuser_ns.registration.reference_colour`) is composed onto every map, so the matched scene takes the
+reference capture's colours rather than those of nerfacto's average appearance embedding.
 
 Application (:class:`nerfuser_ns.model.NerfuserModel`): every sample colour and background colour of NeRF ``i`` becomes
 ``linear_to_srgb(clip(A_i srgb_to_linear(c) + b_i, 0, 1))`` before blending; the identity map leaves colours
@@ -118,6 +120,12 @@ def compose(outer: Float[np.ndarray, "3 4"], inner: Float[np.ndarray, "3 4"]) ->
     """The map ``outer(inner(c))`` (both affine in linear RGB; the clip in between is dropped)."""
     A = outer[:, :3] @ inner[:, :3]
     return np.hstack([A, (outer[:, :3] @ inner[:, 3] + outer[:, 3])[:, None]])
+
+
+def invert(colour_map: Float[np.ndarray, "3 4"]) -> Float[np.ndarray, "3 4"]:
+    """The map undoing ``colour_map`` (its linear part must be invertible)."""
+    A_inv = np.linalg.inv(colour_map[:, :3])
+    return np.hstack([A_inv, (-A_inv @ colour_map[:, 3])[:, None]])
 
 
 def chain_to_reference(

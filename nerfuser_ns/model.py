@@ -15,7 +15,7 @@ Per ray batch (rays in the COMMON frame):
    NeRF keeping its own background term (nerfacto "last_sample").
 
 Appearance matching (ours, :mod:`nerfuser_ns.appearance`): each NeRF's sample and background colours go through its
-colour map to the reference NeRF (from the registration file; identity when absent) before blending, when
+colour map to the reference capture's colours (from the registration file; identity when absent) before blending, when
 ``appearance_matching`` is on (not the default). Training cameras (for ``coverage``) come from the registration file
 too, mapped once into the common frame; rendering never reads a dataset. Without them ``coverage`` is IDW-Sample (one
 warning).
@@ -149,7 +149,7 @@ class NerfuserModelConfig(ModelConfig):
     coverage: CoverageParams = field(default_factory=CoverageParams)
     """Constants of the ``coverage`` method: angular width, cameras per score, candidate cameras per ray."""
     appearance_matching: bool = False
-    """Map each NeRF's colours to the reference NeRF's with its colour map from the registration file (ours; the
+    """Map each NeRF's colours to the reference capture's with its colour map from the registration file (ours; the
     identity where the file has none). Off by default: on stock nerfacto runs of captures with no colour difference
     the maps fitted on cross-renders moved the blends by +0.00 to -0.29 dB (reports/bench_blending_coverage.md)."""
     share_outputs: bool = True

@@ -10,12 +10,14 @@ Poses are camera-to-world 4x4 in nerfstudio's OpenGL camera convention, intrinsi
 
 from __future__ import annotations
 
+import copy
 import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+import torch
 from jaxtyping import Float
 
 from nerfuser_ns import runs
@@ -152,6 +154,30 @@ class NerfstudioRenderer:
         nerfacto optimises poses), so the renders show what the run learned best."""
         c2w = self.training_cameras().camera_to_worlds
         return as_4x4(runs.optimized_poses(self._load().model, c2w).detach().cpu().numpy())
+
+    def training_image_files(self) -> list[Path]:
+        """The training images, in the order of :meth:`training_cameras` (``runs.RunLoadError`` without a dataset)."""
+        return [Path(f) for f in runs.training_views(self.config_path, self.data_override).image_filenames]
+
+    def render_training_views(self, indices: list[int], factor: int) -> list[RenderBatch]:
+        """The training cameras ``indices`` rendered at 1/``factor`` of their size (each camera's own intrinsics and
+        lens distortion, the camera optimiser's poses), one batch per view: what the run renders where it was shown
+        the training image (with nerfacto's average appearance embedding, as for every view it did not train on)."""
+        model = self._load().model
+        cams = self.training_cameras()
+        c2w = torch.as_tensor(self.training_poses()[:, :3, :], dtype=torch.float32)
+        out = []
+        for i in indices:
+            cam = copy.deepcopy(cams[i : i + 1])
+            width, height = int(cam.width[0, 0]) // factor, int(cam.height[0, 0]) // factor
+            cam.camera_to_worlds = c2w[i : i + 1]
+            cam.rescale_output_resolution(1.0 / factor)
+            # set the size exactly: the image is cropped to a multiple of factor and block-averaged to this size
+            cam.width, cam.height = torch.full_like(cam.width, width), torch.full_like(cam.height, height)
+            views = runs.render_views(model, cam, outputs=("rgb", "accumulation"), progress=False)
+            out.append(RenderBatch(views["rgb"].clamp(0, 1).numpy().astype(np.float32),
+                                   views["accumulation"][..., 0].clamp(0, 1).numpy().astype(np.float32)))  # fmt: skip
+        return out
 
     def training_intrinsics(self) -> Intrinsics | None:
         cams = self.training_cameras()

@@ -294,6 +294,11 @@ class RegistrationConfig:
     """Appearance matching: views per checked pair and direction the colour maps are fitted on, evenly spread over
     each NeRF's views and rendered at half size (each NeRF renders its own views brighter than the other does, by a
     share that varies from view to view: more views average it out; 0: no colour maps)."""
+    reference_colour: bool = True
+    """Appearance matching (ours): also map the reference NeRF's colours to its own training images, fitted on
+    ``colour_views`` of its training cameras (needs its dataset), so the matched fused scene takes the reference
+    capture's colours instead of those of nerfacto's average appearance embedding (2-37% brighter than the capture on
+    our runs); --no-reference-colour keeps the reference NeRF's colours."""
 
 
 def validate_settings(config: RegistrationConfig) -> Intrinsics:

@@ -54,6 +54,7 @@ from nerfuser_ns.registration.pairwise import (
     views_matched,
 )
 from nerfuser_ns.registration.record import RegistrationResult, work_dir_for, write_registration
+from nerfuser_ns.registration.reference_colour import compose_with_reference, reference_colour
 from nerfuser_ns.registration.refine import refine_on_matches, refine_transforms
 from nerfuser_ns.registration.render_cache import (
     check_inputs,
@@ -189,8 +190,29 @@ def register(
         result.sampling_choice = {"requested": config.sampling.source, "source": sc.source,
                                   "mode": choice.config.mode, "reason": choice.reason,
                                   "tried_before": tried}  # fmt: skip
+        if config.reference_colour and config.colour_views > 0:
+            match_reference_colours(result, renderers[result.reference], config.colour_views, console)
         return result
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+def match_reference_colours(
+    result: RegistrationResult, reference: Renderer, num_views: int, console: Console
+) -> None:
+    """Compose every NeRF's colour map with the reference NeRF's map to its own training images
+    (:mod:`~nerfuser_ns.registration.reference_colour`), in place, and record it (or why there is none)."""
+    with console.status(f"appearance: rendering the reference NeRF at {num_views} of its training cameras"):
+        rc = reference_colour(reference, num_views)
+    if rc.colour_map is None:
+        console.print(f"appearance: the colour maps stay relative to the reference NeRF ({rc.skipped})")
+    else:
+        gains = np.round(np.diag(rc.colour_map[:, :3]), 3).tolist()
+        console.print(f"appearance: the reference NeRF's colours mapped to its training images (linear gains {gains}, "
+                      f"{rc.views} views)")  # fmt: skip
+        maps = compose_with_reference([n.colour_to_reference for n in result.nerfs], rc.colour_map)
+        for n, m in zip(result.nerfs, maps, strict=True):
+            n.colour_to_reference = m
+    result.reference_colour = rc.to_record()
 
 
 def register_once(

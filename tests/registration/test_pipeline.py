@@ -28,8 +28,10 @@ from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.ground_truth import ScoreCommand, score_registration
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
+from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration import pipeline as reg_pipeline
-from nerfuser_ns.renderers import RenderBatch
+from nerfuser_ns.registration.reference_colour import reference_colour
+from nerfuser_ns.renderers import NerfstudioRenderer, RenderBatch
 from nerfuser_ns.scripts import register as cli
 
 
@@ -303,6 +305,21 @@ def test_real_command_on_tiny_nerfacto_runs(tiny_runs, tmp_path, monkeypatch, ca
     # the renders are kept for a re-run (one folder per NeRF and pose source the automatic choice tried; known
     # geometry's, with depth, are folders of their own)
     assert len(list((tmp_path / "registration_work" / "renders").glob("*/poses.json"))) in (2, 4, 6, 8)
+
+
+def test_training_views_render_as_the_pinhole_path(tiny_runs):
+    """A run's training cameras rendered by camera (its own intrinsics and distortion) equal the pinhole render at
+    the same pose when the cameras have no distortion; the reference NeRF's colour map comes from them."""
+    renderer = NerfstudioRenderer(tiny_runs[1])
+    (batch,) = renderer.render_training_views([3], 2)
+    assert batch.rgb.shape == (1, 15, 20, 3) and batch.accumulation.shape == (1, 15, 20)
+    k = renderer.training_intrinsics()
+    half = Intrinsics(k.fx / 2, k.fy / 2, k.cx / 2, k.cy / 2, 20, 15)
+    pinhole = renderer.render(renderer.training_poses()[3:4], half)
+    np.testing.assert_allclose(batch.rgb, pinhole.rgb, atol=1e-5)
+    assert len(renderer.training_image_files()) == len(renderer.training_poses())
+    rc = reference_colour(renderer, 3)
+    assert (rc.colour_map is not None and rc.views == 3) or "too few" in rc.skipped
 
 
 def test_run_without_checkpoints(tiny_runs, tmp_path, capsys):
