@@ -185,7 +185,8 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
         tried.append(config.sampling.source)
         if config.sampling.source == "training":
             raise reg.RegistrationError("a: its views form a separate SfM model")
-        return SimpleNamespace(sampling_choice=None)  # register() records its choice on the result
+        # register() records its choice, and the reference NeRF's colour map (or why not), on the result
+        return SimpleNamespace(sampling_choice=None, reference=0, nerfs=[], reference_colour=None)
 
     monkeypatch.setattr(reg_pipeline, "register_once", once)
     console = Console(record=True, width=200)
@@ -195,8 +196,10 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     assert record.sampling_choice["tried_before"] == [
         {"source": "training", "mode": "sfm", "error": "a: its views form a separate SfM model"}]
     text = console.export_text()
-    for line in ("pose sampling: training", "training poses did not register (sfm)", "pose sampling: both"):
+    for line in ("pose sampling: training", "training poses did not register (sfm)", "pose sampling: both",
+                 "appearance: the colour maps stay relative to the reference NeRF"):
         assert line in text, line
+    assert "no training images" in record.reference_colour["skipped"]  # ground-truth renderers have none
     # SfM failing with every source: known geometry last, said so
     tried.clear()
 
@@ -204,7 +207,7 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
         tried.append((config.sampling.source, config.mode))
         if config.mode == "sfm":
             raise reg.RegistrationError("b: its SfM cameras disagree with its registered transform")
-        return SimpleNamespace(sampling_choice=None)
+        return SimpleNamespace(sampling_choice=None, reference=0, nerfs=[], reference_colour=None)
 
     monkeypatch.setattr(reg_pipeline, "register_once", sfm_fails)
     console = Console(record=True, width=200)
