@@ -151,7 +151,8 @@ class NerfuserModelConfig(ModelConfig):
     appearance_matching: bool = False
     """Map each NeRF's colours to the reference capture's with its colour map from the registration file (ours; the
     identity where the file has none). Off by default: on stock nerfacto runs of captures with no colour difference
-    the maps fitted on cross-renders moved the blends by +0.00 to -0.29 dB (reports/bench_blending_coverage.md)."""
+    the maps fitted on cross-renders moved the blends by +0.00 to -0.29 dB (reports/bench_blending_coverage.md, before
+    the reference colour); with it, on our nerfacto-cpu pairs without differences, by -0.14 to +0.37 dB."""
     share_outputs: bool = True
     """Also output ``share_<i>`` (each NeRF's share of the pixel weight) and a colour-coded ``nerf_share`` map."""
     render_all_methods: bool = False
