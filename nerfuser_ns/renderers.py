@@ -100,7 +100,7 @@ class NerfstudioRenderer:
         self.data_override = data_override
         self.eval_num_rays_per_chunk = eval_num_rays_per_chunk
         self._loaded = None
-        self._training_cameras = None
+        self._training_views = None
 
     def __getstate__(self) -> dict:
         # a copy sent to another process (a Ray task) loads the run there, lazily, instead of carrying the model
@@ -124,9 +124,13 @@ class NerfstudioRenderer:
     def training_cameras(self):  # noqa: ANN201 - nerfstudio Cameras (imported lazily)
         """The run's training cameras in its NeRF frame, parsed from its dataset (``runs.RunLoadError`` when the
         dataset cannot be read)."""
-        if self._training_cameras is None:
-            self._training_cameras = runs.training_cameras(self.config_path, self.data_override)
-        return self._training_cameras
+        return self._views().cameras
+
+    def _views(self):  # noqa: ANN202 - nerfstudio DataparserOutputs (imported lazily)
+        # the dataset is parsed once: cameras and image files come from the same parse
+        if self._training_views is None:
+            self._training_views = runs.training_views(self.config_path, self.data_override)
+        return self._training_views
 
     def checkpoint_identity(self) -> dict:
         """The checkpoint rendered (file, step, SHA-256): recorded by the registration."""
@@ -157,7 +161,7 @@ class NerfstudioRenderer:
 
     def training_image_files(self) -> list[Path]:
         """The training images, in the order of :meth:`training_cameras` (``runs.RunLoadError`` without a dataset)."""
-        return [Path(f) for f in runs.training_views(self.config_path, self.data_override).image_filenames]
+        return [Path(f) for f in self._views().image_filenames]
 
     def render_training_views(self, indices: list[int], factor: int) -> list[RenderBatch]:
         """The training cameras ``indices`` rendered at 1/``factor`` of their size (each camera's own intrinsics and

@@ -29,6 +29,7 @@ from jaxtyping import Float
 from PIL import Image
 
 from nerfuser_ns import appearance, runs
+from nerfuser_ns.registration.self_check import block_mean
 from nerfuser_ns.renderers import Renderer
 
 TARGET_SIDE = 128
@@ -58,10 +59,8 @@ def reduction_factor(width: int, height: int, target_side: int = TARGET_SIDE) ->
 def block_average_linear(srgb: Float[np.ndarray, "h w 3"], factor: int) -> Float[np.ndarray, "h2 w2 3"]:
     """An sRGB image (floats in [0, 1]) cropped to a multiple of ``factor`` and averaged over ``factor`` x ``factor``
     blocks in linear RGB (light adds up there), returned sRGB-encoded."""
-    h, w = (srgb.shape[0] // factor) * factor, (srgb.shape[1] // factor) * factor
-    lin = appearance.srgb_to_linear(torch.from_numpy(np.asarray(srgb[:h, :w, :3], dtype=np.float64)))
-    lin = lin.reshape(h // factor, factor, w // factor, factor, 3).mean(dim=(1, 3))
-    return appearance.linear_to_srgb(lin).numpy()
+    lin = appearance.srgb_to_linear(torch.from_numpy(np.asarray(srgb[..., :3], dtype=np.float64))).numpy()
+    return appearance.linear_to_srgb(torch.from_numpy(block_mean(lin, factor))).numpy()
 
 
 def read_image(path: Path) -> Float[np.ndarray, "h w 3"]:

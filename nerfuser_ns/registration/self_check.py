@@ -31,16 +31,19 @@ COLOUR_REDUCE = 2
 validation pair: the same gains within 0.3% from every pixel, every 2nd or every 4th)."""
 
 
-def _gray_blocks(rgb: np.ndarray, factor: int) -> np.ndarray:
+def _grayblock_mean(rgb: np.ndarray, factor: int) -> np.ndarray:
     gray = rgb[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32) if rgb.ndim == 3 else rgb
-    return _blocks(gray, factor)
+    return block_mean(gray, factor)
 
 
-def _blocks(x: np.ndarray, factor: int) -> np.ndarray:
+def block_mean(x: np.ndarray, factor: int) -> np.ndarray:
+    """``x`` (``[h, w, ...]``) cropped to a multiple of ``factor`` and averaged over ``factor`` x ``factor`` blocks, in
+    float64 (trailing axes, e.g. colour channels, kept)."""
     if factor <= 1:
         return x.astype(np.float64)
     h, w = (x.shape[0] // factor) * factor, (x.shape[1] // factor) * factor
-    return x[:h, :w].reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3), dtype=np.float64)
+    blocks = x[:h, :w].reshape(h // factor, factor, w // factor, factor, *x.shape[2:])
+    return blocks.mean(axis=(1, 3), dtype=np.float64)
 
 
 def ncc(
@@ -54,8 +57,8 @@ def ncc(
 
     NaN when fewer than ``min_fraction`` of the (downsampled) pixels are usable or either image is flat there.
     """
-    ga, gb = _gray_blocks(a, downsample), _gray_blocks(b, downsample)
-    m = np.ones(ga.shape, bool) if mask is None else _blocks(mask.astype(np.float32), downsample) > 0.5
+    ga, gb = _grayblock_mean(a, downsample), _grayblock_mean(b, downsample)
+    m = np.ones(ga.shape, bool) if mask is None else block_mean(mask.astype(np.float32), downsample) > 0.5
     if m.sum() < max(4, min_fraction * m.size):
         return float("nan")
     x, y = ga[m] - ga[m].mean(), gb[m] - gb[m].mean()
@@ -145,12 +148,12 @@ def view_nccs(
         rgb = np.nan_to_num(np.asarray(out.rgb[0], dtype=np.float32))
         # Compare what the PNG stored, as the SfM saw it.
         rgb = to_uint8(rgb).astype(np.float32) / 255
-        mask = _blocks(acc_src[k], reduce) >= 0.5
+        mask = block_mean(acc_src[k], reduce) >= 0.5
         if out.accumulation is not None:
             mask &= np.nan_to_num(out.accumulation[0]) >= 0.5
-        own = np.stack([_blocks(c, reduce) for c in np.moveaxis(src.load_rgb(k), -1, 0)], axis=-1)
+        own = block_mean(src.load_rgb(k), reduce)
         if colours is not None:
-            opaque = _blocks(acc_src[k], reduce) >= appearance.OPAQUE
+            opaque = block_mean(acc_src[k], reduce) >= appearance.OPAQUE
             if out.accumulation is not None:
                 opaque &= np.nan_to_num(out.accumulation[0]) >= appearance.OPAQUE
             colours.append((own[opaque], rgb[opaque]))
