@@ -105,9 +105,9 @@ def _gains(scene: SceneRuns) -> list[np.ndarray]:
     return out
 
 
-def registration_errors(scene: SceneRuns, reg: Path) -> dict:
-    """The registration against the scene's truth (the paper's errors of the worst NeRF) and what it chose."""
-    record = read_registration(reg)
+def registration_errors(scene: SceneRuns, record: dict) -> dict:
+    """The registration (its record) against the scene's truth (the paper's errors of the worst NeRF) and what it
+    chose."""
     truth = nerf_to_world_from_captures(load_ground_truth_captures(scene.scene_dir, scene.captures),
                                         [runs.read_dataparser_transform(p) for p in scene.configs])  # fmt: skip
     scored = score_registration(record, truth)
@@ -131,7 +131,8 @@ def measure(scene: SceneRuns, reg: Path, cfg: BenchAppearance, console: Console)
     transforms = [e.nerf_to_common for e in entries]
     maps = [e.colour_to_reference for e in entries]
     # the maps as the cross-renders alone fitted them: the reference NeRF's map to its images taken back out
-    ref_colour = (read_registration(reg).get("reference_colour") or {}).get("map")
+    record = read_registration(reg)
+    ref_colour = (record.get("reference_colour") or {}).get("map")
     pair_maps = maps if ref_colour is None else [
         None if m is None else appearance.compose(appearance.invert(np.asarray(ref_colour)), m) for m in maps]
     gains = _gains(scene)
@@ -142,7 +143,7 @@ def measure(scene: SceneRuns, reg: Path, cfg: BenchAppearance, console: Console)
                     "fitted_maps": [None if m is None else np.diag(m[:, :3]).tolist() for m in maps],
                     "pair_maps": [None if m is None else np.diag(m[:, :3]).tolist() for m in pair_maps],
                     "reference_colour": None if ref_colour is None else np.diag(np.asarray(ref_colour)[:, :3]).tolist(),
-                    "registration": registration_errors(scene, reg)}  # fmt: skip
+                    "registration": registration_errors(scene, record)}  # fmt: skip
     # the true maps applied to the same runs: what matching could reach with an exact fit (plain: the identity,
     # which is the unmatched blend)
     true_maps = [np.hstack([np.diag(gains[0] / g), np.zeros((3, 1))]) for g in gains]

@@ -105,7 +105,8 @@ class BenchPractitioner:
     stages: list[str] = field(default_factory=lambda: ["scene", "colmap", "train", "register", "fuse"])
     """Stages to run (each skipped when its output exists); ``cost`` (not a default) also times the fused model's
     IDW-Sample and ``coverage`` passes against the sub-models on the rays they are queried on; ``content`` (not a
-    default) registers each run to the ground-truth scene placed by the stored truth (:func:`stage_content`)."""
+    default) registers each run to the ground-truth scene placed by the stored truth (:func:`stage_content`);
+    ``matched`` (not a default) scores the fused run again with appearance matching on (:func:`stage_matched`)."""
     report: Path | None = None
     """Write the markdown report here (after the stages)."""
     report_only: bool = False
@@ -113,9 +114,9 @@ class BenchPractitioner:
     coverage_report: Path | None = None
     """Also write the report of the ``coverage`` blend (ours) against the paper's IDW methods here."""
     matched_eval: str = "eval_matched.json"
-    """In a case folder: ``ns-eval``'s JSON of the same fused run with appearance matching on (made by hand: a second
-    ``ns-train nerfuser`` with ``--pipeline.model.appearance-matching True``); the coverage report gives what it
-    changed when the file exists."""
+    """In a case folder: ``ns-eval``'s JSON of the same fused run with appearance matching on (the ``matched``
+    stage: a second ``ns-train nerfuser`` with ``--pipeline.model.appearance-matching True``); the coverage report
+    gives what it changed when the file exists."""
 
 
 def _run(cmd: list[str], log: Path, cwd: Path | None = None) -> float:
@@ -308,6 +309,24 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
     seconds = _run([str(BIN / "ns-render"), "dataset", "--load-config", str(fused_config), "--output-path",
                     str(renders), "--split", "test", "--rendered-output-names", "rgb"], case_dir / "render.log")
     _add_time(case_dir, "ns-render dataset", seconds)
+
+
+def stage_matched(case_dir: Path, matched_eval: str) -> None:
+    """The same fused run with appearance matching on (ours; off by default in the model), scored by ``ns-eval``:
+    the registration's colour maps applied to every NeRF, every blend method in one pass."""
+    eval_json = case_dir / matched_eval
+    if eval_json.is_file() or not (case_dir / "fusion.json").is_file():
+        return
+    fused_dir = case_dir / "fused_matched"
+    seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(case_dir / "fusion.json"), "--output-dir",
+                    str(fused_dir), "--experiment-name", "fused", "--timestamp", "bench",
+                    "--pipeline.model.render-all-methods", "True", "--pipeline.model.appearance-matching", "True"],
+                   case_dir / "fuse_matched_train.log")  # fmt: skip
+    _add_time(case_dir, "ns-train nerfuser (matched)", seconds)
+    fused_config = fused_dir / "fused" / "nerfuser" / "bench" / "config.yml"
+    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(fused_config), "--output-path", str(eval_json)],
+                   case_dir / "eval_matched.log")  # fmt: skip
+    _add_time(case_dir, "ns-eval (matched)", seconds)
 
 
 def stage_content(layout, case_dir: Path, gt: list[dict]) -> None:
@@ -649,6 +668,8 @@ def main(cfg: BenchPractitioner) -> None:
         if not cfg.report_only and gt is not None:
             if "fuse" in cfg.stages:
                 stage_fuse(layout, case_dir, gt)
+            if "matched" in cfg.stages:
+                stage_matched(case_dir, cfg.matched_eval)
             if "content" in cfg.stages:
                 stage_content(layout, case_dir, gt)
         if not cfg.report_only and "cost" in cfg.stages:

@@ -4,8 +4,10 @@ matching).
 Reads a registration's work folder: every render folder with training-pose views (``--sampling.source training`` or
 ``both``) is paired, view by view, with the run's training image at the nearest training camera (the renders are at
 the poses the camera optimiser left, which differ from the dataset's by a fraction of a degree). Per colour channel,
-the ratio of the summed linear colours over the pixels where the render is opaque (accumulation >= 0.95) and neither
-image is clipped. 1 means the NeRF renders its views as bright as it was shown them.
+the gain from the renders to the images by the estimator of the registration's reference colour
+(:func:`nerfuser_ns.registration.reference_colour.fit_reference_colour`: ratio of the summed linear colours over the
+pixels the render shows opaque and neither image clips), printed as render / image (its inverse). 1 means the NeRF
+renders its views as bright as it was shown them.
 
 With ``--configs``, runs are rendered here instead, at every n-th training camera, twice: with the average of the
 per-image appearance embeddings (what nerfstudio and the fused model use for any view that is not a training image)
@@ -25,12 +27,10 @@ from pathlib import Path
 import numpy as np
 import torch
 import tyro
-from PIL import Image
 
 from nerfuser_ns import runs
-from nerfuser_ns.appearance import srgb_to_linear
+from nerfuser_ns.registration.reference_colour import fit_reference_colour, read_image
 
-MIN_ACCUMULATION = 0.95
 MAX_POSE_DIFFERENCE = 0.05
 """Largest element-wise difference of a render's camera from the nearest training camera (NeRF units)."""
 
@@ -47,11 +47,6 @@ class RenderBrightness:
     """--configs: training cameras rendered per run (evenly spaced)."""
 
 
-def _linear(path: Path) -> np.ndarray:
-    srgb = torch.from_numpy(np.asarray(Image.open(path).convert("RGB"), dtype=np.float32) / 255.0)
-    return srgb_to_linear(srgb).numpy()
-
-
 def brightness(folder: Path) -> tuple[str, int, np.ndarray]:
     """The run of one render folder, the views compared, and the per-channel ratio render / training image."""
     meta = json.loads((folder / "poses.json").read_text())
@@ -59,7 +54,7 @@ def brightness(folder: Path) -> tuple[str, int, np.ndarray]:
     cameras = views.cameras.camera_to_worlds.numpy()
     accumulation = np.load(folder / "accumulation.npz")
     accumulation = accumulation[accumulation.files[0]]
-    rendered, shown, count = np.zeros(3), np.zeros(3), 0
+    renders, images = [], []
     for k, view in enumerate(meta["views"]):
         if view["source"] != "training":
             continue
@@ -67,17 +62,17 @@ def brightness(folder: Path) -> tuple[str, int, np.ndarray]:
         nearest = int(np.argmin(np.abs(cameras - c2w[None]).sum(axis=(1, 2))))
         if np.abs(cameras[nearest] - c2w).max() > MAX_POSE_DIFFERENCE:
             continue
-        render, image = _linear(folder / view["file"]), _linear(views.image_filenames[nearest])
-        if render.shape != image.shape:
-            continue
-        r, s = _ratio(render, image, accumulation[k])
-        rendered, shown, count = rendered + r, shown + s, count + 1
-    return meta["renderer"], count, rendered / np.maximum(shown, 1e-12)
+        render, image = read_image(folder / view["file"]), read_image(views.image_filenames[nearest])
+        if render.shape == image.shape:
+            renders.append((render, accumulation[k]))
+            images.append(image)
+    return meta["renderer"], len(renders), _render_over_image(renders, images)
 
 
-def _ratio(render: np.ndarray, image: np.ndarray, accumulation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    mask = (accumulation >= MIN_ACCUMULATION) & (render.max(-1) < 0.99) & (image.max(-1) < 0.99)
-    return render[mask].sum(0), image[mask].sum(0)
+def _render_over_image(renders: list, images: list) -> np.ndarray:
+    """Per channel render / image (NaN when too few pixels to fit)."""
+    colour_map, _ = fit_reference_colour(renders, images)
+    return np.full(3, np.nan) if colour_map is None else 1.0 / np.diag(colour_map[:, :3])
 
 
 def embedding_brightness(config: Path, num_views: int) -> dict[str, np.ndarray]:
@@ -87,7 +82,7 @@ def embedding_brightness(config: Path, num_views: int) -> dict[str, np.ndarray]:
     views = runs.training_views(config)
     out = {}
     for label in ("average embedding", "own embedding"):
-        rendered, shown = np.zeros(3), np.zeros(3)
+        renders, images = [], []
         for i in np.linspace(0, len(views.cameras) - 1, num_views).round().astype(int):
             bundle = views.cameras.generate_rays(camera_indices=int(i), keep_shape=True).to(model.device)
             model.field.train(label == "own embedding")  # nerfacto's field picks the image's embedding when training
@@ -96,10 +91,10 @@ def embedding_brightness(config: Path, num_views: int) -> dict[str, np.ndarray]:
                     outputs = model.get_outputs_for_camera_ray_bundle(bundle)
             finally:
                 model.field.eval()
-            render = srgb_to_linear(outputs["rgb"].clamp(0, 1)).cpu().numpy()
-            r, s = _ratio(render, _linear(views.image_filenames[i]), outputs["accumulation"][..., 0].cpu().numpy())
-            rendered, shown = rendered + r, shown + s
-        out[label] = rendered / np.maximum(shown, 1e-12)
+            renders.append((outputs["rgb"].clamp(0, 1).double().cpu().numpy(),
+                            outputs["accumulation"][..., 0].cpu().numpy()))  # fmt: skip
+            images.append(read_image(views.image_filenames[i]))
+        out[label] = _render_over_image(renders, images)
     return out
 
 
