@@ -33,7 +33,7 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -45,7 +45,7 @@ from rich.console import Console
 from nerfuser_ns import registration, runs, sim3
 from nerfuser_ns.bench import evaluation
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
-from nerfuser_ns.bench.scenes import make_layout, render, to_uint8, write_capture
+from nerfuser_ns.bench.scenes import apply_appearance, make_layout, render, to_uint8, write_capture
 from nerfuser_ns.coverage import CoverageParams
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
@@ -113,6 +113,13 @@ class BenchPractitioner:
     """Only collect the cases' records into the report."""
     coverage_report: Path | None = None
     """Also write the report of the ``coverage`` blend (ours) against the paper's IDW methods here."""
+    appearance_jitter: float = 0.0
+    """Give each capture its own exposure and white balance (stops; the generator's ``appearance_jitter``): the
+    captures' images carry it, the test views the reference (first) capture's, which the blend is scored against.
+    Case folders get the suffix ``-bracket<j>`` or ``-jitter<j>``."""
+    appearance_bracket: bool = False
+    """With ``appearance_jitter``: spread the captures over its range (the largest differences it allows) instead of
+    drawing them."""
     matched_eval: str = "eval_matched.json"
     """In a case folder: ``ns-eval``'s JSON of the same fused run with appearance matching on (the ``matched``
     stage: a second ``ns-train nerfuser`` with ``--pipeline.model.appearance-matching True``); the coverage report
@@ -140,7 +147,16 @@ def _layout(case: str, cfg: BenchPractitioner):
         params["num_captures"] = cfg.num_captures
     if name == "drive":
         params.update(num_views=96, num_test_views=12)
+    if cfg.appearance_jitter > 0:
+        params.update(appearance_jitter=cfg.appearance_jitter, appearance_bracket=cfg.appearance_bracket)
     return make_layout(name, **params)
+
+
+def case_folder(case: str, cfg: BenchPractitioner) -> str:
+    """A case's folder name: ``layout-seed``, with the appearance differences it was rendered with."""
+    if cfg.appearance_jitter <= 0:
+        return case.replace(":", "-")
+    return case.replace(":", "-") + f"-{'bracket' if cfg.appearance_bracket else 'jitter'}{cfg.appearance_jitter:g}"
 
 
 def _times(case_dir: Path) -> dict:
@@ -163,12 +179,16 @@ def stage_scene(layout, case_dir: Path) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         for i in range(cap.num_views):
             out = render(layout.scene, cap.c2w_world[i], cap.intrinsics, supersample=2)
-            Image.fromarray(to_uint8(out.rgb)).save(folder / f"view_{i:05d}.png")
+            rgb = apply_appearance(out.rgb, cap.appearance_gains)
+            Image.fromarray(to_uint8(rgb)).save(folder / f"view_{i:05d}.png")
         (folder / ".done").write_text("")
         _add_time(case_dir, f"images {cap.name}", time.perf_counter() - start)
     test = case_dir / "test"
     if not (test / "transforms.json").is_file():
-        write_capture(layout, layout.test, test, world_frame=True, supersample=2)
+        # scored in the reference capture's appearance: the colours a matched blend renders
+        ref = layout.captures[0]
+        view = replace(layout.test, exposure=ref.exposure, white_balance=ref.white_balance)
+        write_capture(layout, view, test, world_frame=True, supersample=2)
 
 
 def stage_colmap(layout, case_dir: Path) -> None:
@@ -651,7 +671,7 @@ def main(cfg: BenchPractitioner) -> None:
     records = []
     for case in cfg.cases:
         layout = _layout(case, cfg)
-        case_dir = (cfg.root / case.replace(":", "-")).absolute()
+        case_dir = (cfg.root / case_folder(case, cfg)).absolute()
         case_dir.mkdir(parents=True, exist_ok=True)
         if not cfg.report_only:
             CONSOLE.rule(case)
