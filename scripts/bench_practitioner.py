@@ -183,6 +183,11 @@ def stage_scene(layout, case_dir: Path) -> None:
             Image.fromarray(to_uint8(rgb)).save(folder / f"view_{i:05d}.png")
         (folder / ".done").write_text("")
         _add_time(case_dir, f"images {cap.name}", time.perf_counter() - start)
+    gains = [None if cap.appearance_gains is None else cap.appearance_gains.tolist() for cap in layout.captures]
+    if any(g is not None for g in gains) and not (case_dir / "appearance.json").is_file():
+        write_text_atomic(case_dir / "appearance.json", json.dumps(
+            {"captures": [cap.name for cap in layout.captures], "gains": gains, "test": "the first capture's"},
+            indent=2) + "\n")  # fmt: skip
     test = case_dir / "test"
     if not (test / "transforms.json").is_file():
         # scored in the reference capture's appearance: the colours a matched blend renders
