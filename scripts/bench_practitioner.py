@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -106,7 +107,8 @@ class BenchPractitioner:
     """Stages to run (each skipped when its output exists); ``cost`` (not a default) also times the fused model's
     IDW-Sample and ``coverage`` passes against the sub-models on the rays they are queried on; ``content`` (not a
     default) registers each run to the ground-truth scene placed by the stored truth (:func:`stage_content`);
-    ``matched`` (not a default) scores the fused run again with appearance matching on (:func:`stage_matched`)."""
+    ``matched`` / ``unmatched`` (not defaults) score the fused run again with appearance matching forced on / off
+    (:func:`stage_appearance`)."""
     report: Path | None = None
     """Write the markdown report here (after the stages)."""
     report_only: bool = False
@@ -120,10 +122,6 @@ class BenchPractitioner:
     appearance_bracket: bool = False
     """With ``appearance_jitter``: spread the captures over its range (the largest differences it allows) instead of
     drawing them."""
-    matched_eval: str = "eval_matched.json"
-    """In a case folder: ``ns-eval``'s JSON of the same fused run with appearance matching on (the ``matched``
-    stage: a second ``ns-train nerfuser`` with ``--pipeline.model.appearance-matching True``); the coverage report
-    gives what it changed when the file exists."""
 
 
 def _run(cmd: list[str], log: Path, cwd: Path | None = None) -> float:
@@ -336,22 +334,45 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
     _add_time(case_dir, "ns-render dataset", seconds)
 
 
-def stage_matched(case_dir: Path, matched_eval: str) -> None:
-    """The same fused run with appearance matching on (ours; off by default in the model), scored by ``ns-eval``:
-    the registration's colour maps applied to every NeRF, every blend method in one pass."""
-    eval_json = case_dir / matched_eval
-    if eval_json.is_file() or not (case_dir / "fusion.json").is_file():
+def fused_appearance_matching(case_dir: Path) -> bool | None:
+    """Whether the ``fuse`` stage's run (the fused model's defaults when it ran) had appearance matching on; None
+    before that stage."""
+    config = case_dir / "fused" / "fused" / "nerfuser" / "bench" / "config.yml"
+    if not config.is_file():
+        return None
+    found = re.search(r"^\s*appearance_matching:\s*(true|false)\s*$", config.read_text(), re.MULTILINE)
+    return False if found is None else found.group(1) == "true"  # runs before the option had none: off
+
+
+def appearance_evals(case_dir: Path) -> dict[bool, Path]:
+    """``ns-eval``'s JSON of the case per appearance-matching setting: the ``fuse`` stage's (the defaults) and the
+    ``matched`` / ``unmatched`` stages' (each setting forced)."""
+    out = {}
+    default = fused_appearance_matching(case_dir)
+    if default is not None and (case_dir / "eval.json").is_file():
+        out[default] = case_dir / "eval.json"
+    for setting, name in ((True, "eval_matched.json"), (False, "eval_unmatched.json")):
+        if (case_dir / name).is_file():
+            out[setting] = case_dir / name
+    return out
+
+
+def stage_appearance(case_dir: Path, matching: bool) -> None:
+    """The same fused run with appearance matching (ours) forced on (the ``matched`` stage) or off (``unmatched``),
+    scored by ``ns-eval``: every blend method in one pass. Skipped when the ``fuse`` stage's run already had it."""
+    label = "matched" if matching else "unmatched"
+    if not (case_dir / "fusion.json").is_file() or matching in appearance_evals(case_dir):
         return
-    fused_dir = case_dir / "fused_matched"
+    fused_dir = case_dir / f"fused_{label}"
     seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(case_dir / "fusion.json"), "--output-dir",
                     str(fused_dir), "--experiment-name", "fused", "--timestamp", "bench",
-                    "--pipeline.model.render-all-methods", "True", "--pipeline.model.appearance-matching", "True"],
-                   case_dir / "fuse_matched_train.log")  # fmt: skip
-    _add_time(case_dir, "ns-train nerfuser (matched)", seconds)
+                    "--pipeline.model.render-all-methods", "True", "--pipeline.model.appearance-matching",
+                    str(matching)], case_dir / f"fuse_{label}_train.log")  # fmt: skip
+    _add_time(case_dir, f"ns-train nerfuser ({label})", seconds)
     fused_config = fused_dir / "fused" / "nerfuser" / "bench" / "config.yml"
-    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(fused_config), "--output-path", str(eval_json)],
-                   case_dir / "eval_matched.log")  # fmt: skip
-    _add_time(case_dir, "ns-eval (matched)", seconds)
+    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(fused_config), "--output-path",
+                    str(case_dir / f"eval_{label}.json")], case_dir / f"eval_{label}.log")  # fmt: skip
+    _add_time(case_dir, f"ns-eval ({label})", seconds)
 
 
 def stage_content(layout, case_dir: Path, gt: list[dict]) -> None:
@@ -510,12 +531,15 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
     lines += _optimized_truth_section(records)
     lines += _content_section(records)
     lines += ["", "## Blending (PSNR from `ns-eval`'s JSON, estimated registration, world-posed test views)", "",
+              "The fused model's defaults when the case ran: appearance matching (ours) off, unless the case is "
+              "marked *matched*.", "",
               "| case | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
               "| --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
     for r in records:
         b = r.get("blend_psnr")
         if b:
-            lines.append(f"| {r['case']} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
+            mark = " *matched*" if fused_appearance_matching(Path(r["case_dir"])) else ""
+            lines.append(f"| {r['case']}{mark} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
                                                           BLEND_COLUMNS) + " |")  # fmt: skip
     lines += ["", "## Time of every step (s)", ""]
     for r in records:
@@ -605,7 +629,7 @@ def _content_section(records: list[dict]) -> list[str]:
 IDW_COLUMNS = ("idw_2d", "idw_3d", "idw_sample")
 
 
-def write_coverage_report(records: list[dict], path: Path, matched_eval: str) -> None:
+def write_coverage_report(records: list[dict], path: Path) -> None:
     """``coverage`` (ours) against the best of the paper's IDW methods per case, PSNR and SSIM from ``ns-eval``."""
     rows = [r for r in records if r.get("blend_psnr") and r["blend_psnr"].get("coverage") is not None]
     layout_of = {r["case"]: r["spec"].rsplit(":", 1)[0] for r in rows}
@@ -617,7 +641,8 @@ def write_coverage_report(records: list[dict], path: Path, matched_eval: str) ->
              "registration).", "",
              f"Constants of `coverage`: sigma {cov.sigma_deg:g} deg, k {cov.k}, {cov.candidates} candidate cameras "
              "per ray, and the paper's gamma / tau (5 / 1.8, the tool's defaults) for every method and layout; "
-             "appearance matching off (the default). They "
+             "appearance matching as the fused model's default had it when the case ran (off unless the case is "
+             "marked *matched*). They "
              "were set before any measurement and not tuned: no case here, and no validation seed, was used to "
              "choose them. `coverage` is ours; NeRF, Nearest, IDW-2D, IDW-3D and IDW-Sample are the paper's "
              "(Table 2).", "",
@@ -625,7 +650,8 @@ def write_coverage_report(records: list[dict], path: Path, matched_eval: str) ->
              "| --- | --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
     for r in rows:
         p, q = r["blend_psnr"], r["blend_ssim"]
-        lines.append(f"| {r['case']} | {layout_of[r['case']]} | " + " | ".join(
+        mark = " *matched*" if fused_appearance_matching(Path(r["case_dir"])) else ""
+        lines.append(f"| {r['case']}{mark} | {layout_of[r['case']]} | " + " | ".join(
             "-" if p[k] is None else f"{p[k]:.2f} / {q[k]:.3f}" for k, _ in BLEND_COLUMNS) + " |")  # fmt: skip
     lines += ["", "PSNR (dB) / SSIM. Per case, `coverage` minus the best of IDW-2D / IDW-3D / IDW-Sample:", ""]
     verdicts = []
@@ -650,19 +676,19 @@ def write_coverage_report(records: list[dict], path: Path, matched_eval: str) ->
             lines.append(f"- {r['case']}: coverage {c['coverage']['ratio_used']:.2f}x, IDW-Sample "
                          f"{c['idw-sample']['ratio_used']:.2f}x")  # fmt: skip
             verdicts.append((f"{r['case']}: coverage cost <= 1.3x", c["coverage"]["ratio_used"] <= 1.3))
-    matched = [r for r in rows if (Path(r["case_dir"]) / matched_eval).is_file()]
-    if matched:
-        lines += ["", "Appearance matching (ours, off by default): the same fused runs with "
-                  "`--pipeline.model.appearance-matching True` (the registration's fitted colour maps applied), PSNR "
-                  "with - without, per method. These captures have no colour difference: the right maps are the "
-                  "identity.", ""]  # fmt: skip
-        for r in matched:
-            on = json.loads((Path(r["case_dir"]) / matched_eval).read_text())["results"]
+    both = [r for r in rows if len(appearance_evals(Path(r["case_dir"]))) == 2]
+    if both:
+        lines += ["", "Appearance matching (ours): the same fused runs with `--pipeline.model.appearance-matching "
+                  "True` and `False` (the registration's colour maps applied or not), PSNR with - without, per "
+                  "method. Captures without colour differences: the right maps are the identity.", ""]  # fmt: skip
+        for r in both:
+            evals = appearance_evals(Path(r["case_dir"]))
+            on, off = (json.loads(evals[k].read_text())["results"] for k in (True, False))
             gains = [np.diag(np.asarray(n["colour_to_reference"])[:, :3]).round(3).tolist()
                      for n in read_registration(Path(r["case_dir"]) / "registration.json")["nerfs"]
                      if n.get("colour_to_reference") is not None]  # fmt: skip
-            diffs = ", ".join(f"{name} {on[f'psnr_{k}'] - r['blend_psnr'][k]:+.2f}" for k, name in BLEND_COLUMNS
-                              if f"psnr_{k}" in on and r["blend_psnr"][k] is not None)  # fmt: skip
+            diffs = ", ".join(f"{name} {on[f'psnr_{k}'] - off[f'psnr_{k}']:+.2f}" for k, name in BLEND_COLUMNS
+                              if f"psnr_{k}" in on and f"psnr_{k}" in off)  # fmt: skip
             lines.append(f"- {r['case']}: {diffs} dB (fitted gains per NeRF: {gains})")
     lines += ["", "Targets: " + "; ".join(f"{t}: {'met' if ok else 'NOT met'}" for t, ok in verdicts) + ".", ""]
     write_text_atomic(path, "\n".join(lines))
@@ -693,8 +719,9 @@ def main(cfg: BenchPractitioner) -> None:
         if not cfg.report_only and gt is not None:
             if "fuse" in cfg.stages:
                 stage_fuse(layout, case_dir, gt)
-            if "matched" in cfg.stages:
-                stage_matched(case_dir, cfg.matched_eval)
+            for setting, stage in ((True, "matched"), (False, "unmatched")):
+                if stage in cfg.stages:
+                    stage_appearance(case_dir, setting)
             if "content" in cfg.stages:
                 stage_content(layout, case_dir, gt)
         if not cfg.report_only and "cost" in cfg.stages:
@@ -706,7 +733,7 @@ def main(cfg: BenchPractitioner) -> None:
         write_report(records, cfg.report, cfg)
         CONSOLE.print(f"report: {cfg.report}")
     if cfg.coverage_report is not None and records:
-        write_coverage_report(records, cfg.coverage_report, cfg.matched_eval)
+        write_coverage_report(records, cfg.coverage_report)
         CONSOLE.print(f"coverage report: {cfg.coverage_report}")
 
 
