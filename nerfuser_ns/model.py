@@ -16,9 +16,9 @@ Per ray batch (rays in the COMMON frame):
 
 Appearance matching (ours, :mod:`nerfuser_ns.appearance`): each NeRF's sample and background colours go through its
 colour map to the reference capture's colours (from the registration file; identity when absent) before blending, when
-``appearance_matching`` is on (not the default). Training cameras (for ``coverage``) come from the registration file
-too, mapped once into the common frame; rendering never reads a dataset. Without them ``coverage`` is IDW-Sample (one
-warning).
+``appearance_matching`` is on (the default; the viewer has a checkbox for it). Training cameras (for ``coverage``)
+come from the registration file too, mapped once into the common frame; rendering never reads a dataset. Without them
+``coverage`` is IDW-Sample (one warning).
 
 Frames: the sub-models never move; only rays do. ``pixel_area`` (the pixel footprint at unit ray distance, a solid
 angle) is invariant under a similarity: at distance ``t_nerf = t / s`` the footprint is ``pixel_area * t^2 / s^2``,
@@ -45,7 +45,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
-from nerfstudio.viewer.viewer_elements import ViewerDropdown, ViewerNumber
+from nerfstudio.viewer.viewer_elements import ViewerCheckbox, ViewerDropdown, ViewerNumber
 from torch import Tensor
 from torch.nn import Parameter
 from torchmetrics.functional import structural_similarity_index_measure
@@ -148,11 +148,11 @@ class NerfuserModelConfig(ModelConfig):
     """The NeRF rendered by the ``nerf`` method."""
     coverage: CoverageParams = field(default_factory=CoverageParams)
     """Constants of the ``coverage`` method: angular width, cameras per score, candidate cameras per ray."""
-    appearance_matching: bool = False
+    appearance_matching: bool = True
     """Map each NeRF's colours to the reference capture's with its colour map from the registration file (ours; the
-    identity where the file has none). Off by default: on stock nerfacto runs of captures with no colour difference
-    the maps fitted on cross-renders moved the blends by +0.00 to -0.29 dB (reports/bench_blending_coverage.md, before
-    the reference colour); with it, on our nerfacto-cpu pairs without differences, by -0.14 to +0.37 dB."""
+    identity where the file has none; False renders every NeRF as it is). Captures filmed at different exposure or
+    white balance need it (+2.4 to +3.1 dB on our bracketed pairs); without differences it moved the blends by +0.05
+    to +0.08 dB on a stock nerfacto pair and by -0.14 to +0.37 dB on our nerfacto-cpu pairs (docs/blending.md)."""
     share_outputs: bool = True
     """Also output ``share_<i>`` (each NeRF's share of the pixel weight) and a colour-coded ``nerf_share`` map."""
     render_all_methods: bool = False
@@ -281,7 +281,8 @@ class NerfuserModel(Model):
     def blend_control_values(self) -> dict[str, Any]:
         """The viewer controls' values for the current settings (tau off shows as 0)."""
         return {"blend_method": self.blend_method, "gamma": float(self.gamma), "tau": float(self.tau or 0.0),
-                "reference_nerf": self._reference_options()[self.reference_nerf % self.num_nerfs]}  # fmt: skip
+                "reference_nerf": self._reference_options()[self.reference_nerf % self.num_nerfs],
+                "appearance_matching": bool(self.config.appearance_matching)}  # fmt: skip
 
     def _add_viewer_controls(self) -> None:
         def set_method(element) -> None:  # noqa: ANN001
@@ -298,6 +299,9 @@ class NerfuserModel(Model):
         def set_reference(element) -> None:  # noqa: ANN001
             self.set_blend(reference_nerf=reference_options.index(element.value))
 
+        def set_matching(element) -> None:  # noqa: ANN001
+            self.config.appearance_matching = bool(element.value)
+
         values = self.blend_control_values()
         controls = {
             "blend_method": ViewerDropdown(
@@ -308,6 +312,10 @@ class NerfuserModel(Model):
             ),
             "gamma": ViewerNumber("NeRFuser gamma", values["gamma"], cb_hook=set_gamma),
             "tau": ViewerNumber("NeRFuser tau (0: off)", values["tau"], cb_hook=set_tau),
+            "appearance_matching": ViewerCheckbox(
+                "NeRFuser appearance matching", values["appearance_matching"], cb_hook=set_matching,
+                hint="Each NeRF's colours mapped to the reference capture's (the registration's colour maps)",
+            ),
         }
 
         # The controls at the top of the viewer's panel, scene groups (NeRF frames, registration and test cameras), CPU

@@ -3,10 +3,10 @@
 ``ns-viewer --load-config <fused run>/config.yml`` works as for any run: the ``nerfuser`` model carries a
 :class:`NerfuserSceneControl` (a nerfstudio ``ViewerControl``), which the viewer sets up when it starts. It adds
 
-* a "NeRFuser" folder at the top of the panel: the blend controls (method, the NeRF shown by ``nerf``, gamma, tau;
-  made by :meth:`nerfuser_ns.model.NerfuserModel._add_viewer_controls`), a "Scene overlays" checkbox (off) with one
-  toggle per scene group under it, and a legend of the share colours ("Output type" ``nerf_share`` shows each NeRF's
-  weight share in its colour);
+* a "NeRFuser" folder at the top of the panel: the blend controls (method, the NeRF shown by ``nerf``, gamma, tau,
+  appearance matching; made by :meth:`nerfuser_ns.model.NerfuserModel._add_viewer_controls`), a "Scene overlays"
+  checkbox (off) with one toggle per scene group under it, and a legend of the share colours ("Output type"
+  ``nerf_share`` shows each NeRF's weight share in its colour);
 * the scene groups, hidden until "Scene overlays" is ticked: each NeRF's frame (axes at its origin, one NeRF unit
   long, i.e. scaled by its registered scale, with a sphere in its share colour), the cameras the registration
   rendered from (read from the registration file's ``render_folder``, in each NeRF's colour, grey where the view was
@@ -268,7 +268,8 @@ class NerfuserSceneControl(ViewerControl):
         super().__init__()
         self._model = model
         self.controls: dict[str, Any] = dict(controls or {})
-        """The blend controls (``ViewerElement``), by name: blend_method, reference_nerf, gamma, tau."""
+        """The blend controls (``ViewerElement``), by name: blend_method, reference_nerf, gamma, tau,
+        appearance_matching."""
         self.cpu_max_res = cpu_max_res
         self.warm_up = warm_up
         self.scene: FusedScene | None = None

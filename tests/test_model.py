@@ -243,7 +243,8 @@ def test_coverage_without_cameras_is_idw_sample_with_one_warning(pair):
 def test_colour_maps_are_applied_to_each_nerfs_colours_and_can_be_switched_off(trained):
     colour = np.hstack([np.diag([0.6, 1.0, 1.4]), np.full((3, 1), 0.02)])
     plain = render(fuse_models([("a", trained.model, np.eye(4))]), C2W)["rgb"]
-    mapped = fuse_models([("a", trained.model, np.eye(4), None, colour)], appearance_matching=True)
+    mapped = fuse_models([("a", trained.model, np.eye(4), None, colour)])  # the default: on
+    assert mapped.config.appearance_matching
     got = render(mapped, C2W)["rgb"]
     assert (got - plain).abs().mean() > 0.02
     # The twin: the map on every sample colour and the background, then nerfstudio's volume rendering.
@@ -253,8 +254,17 @@ def test_colour_maps_are_applied_to_each_nerfs_colours_and_can_be_switched_off(t
         m = torch.tensor(colour, dtype=torch.float32)
         want = render_samples(s.weights, apply_colour_map(s.rgbs, m), apply_colour_map(s.background_rgb, m))
     close(got.reshape(-1, 3), want.clamp(0, 1), 1e-5)
-    off = fuse_models([("a", trained.model, np.eye(4), None, colour)])  # the default: off
+    off = fuse_models([("a", trained.model, np.eye(4), None, colour)], appearance_matching=False)
     assert torch.equal(render(off, C2W)["rgb"], plain)
+    # the viewer's checkbox switches it for the next frame, both ways
+    checkbox = mapped.viewer_scene.controls["appearance_matching"]
+    assert checkbox.value is True
+    checkbox.value = False
+    checkbox.cb_hook(checkbox)
+    assert torch.equal(render(mapped, C2W)["rgb"], plain)
+    checkbox.value = True
+    checkbox.cb_hook(checkbox)
+    assert torch.equal(render(mapped, C2W)["rgb"], got)
     identity = fuse_models([("a", trained.model, np.eye(4), None, IDENTITY)], appearance_matching=True)
     assert torch.equal(render(identity, C2W)["rgb"], plain)
 
