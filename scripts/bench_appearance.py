@@ -224,8 +224,9 @@ def write_report(path: Path, data: dict) -> None:
         same = f" {jit['matched'][m]['psnr'] - plain['matched'][m]['psnr']:+.2f} dB |" if both else ""
         lines.append(f"| {names.get(m, m)} | " + " | ".join(cells) + f" | {gap:+.2f} dB | {gain:+.2f} dB |" + same)
     ref_gap = jit["unmatched"]["nerf"]["psnr"] - plain["unmatched"]["nerf"]["psnr"]
-    lines += ["", "PSNR (dB) / SSIM. Plain, unmatched is the scene without differences, as the tool renders it by "
-              "default (appearance matching is off by default).", "",
+    lines += ["", "PSNR (dB) / SSIM. Plain, unmatched is the scene without differences, every NeRF rendered as it "
+              "is (appearance matching off; the fused model's default was off until these reports were made, and "
+              "is on since).", "",
               f"NeRF (ref.) blends nothing, yet differs by {ref_gap:+.2f} dB between the two versions: the reference "
               "run trained on other images (and scored in its own capture's appearance) differs by that much, "
               "which bounds what the matched - plain column can resolve; matched - unmatched within the jittered "
