@@ -151,8 +151,9 @@ class NerfuserModelConfig(ModelConfig):
     appearance_matching: bool = True
     """Map each NeRF's colours to the reference capture's with its colour map from the registration file (ours; the
     identity where the file has none; False renders every NeRF as it is). Captures filmed at different exposure or
-    white balance need it (+2.4 to +3.1 dB on our bracketed pairs); without differences it moved the blends by +0.05
-    to +0.08 dB on a stock nerfacto pair and by -0.14 to +0.37 dB on our nerfacto-cpu pairs (docs/blending.md)."""
+    white balance need it (+2.4 to +3.7 dB on our bracketed pairs, stock nerfacto included); without differences it
+    moved the blends by +0.05 to +0.08 dB on a stock nerfacto pair and by -0.14 to +0.37 dB on our nerfacto-cpu pairs
+    (docs/blending.md)."""
     share_outputs: bool = True
     """Also output ``share_<i>`` (each NeRF's share of the pixel weight) and a colour-coded ``nerf_share`` map."""
     render_all_methods: bool = False
