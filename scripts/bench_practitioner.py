@@ -319,25 +319,41 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
         case_dir / "fusion.json", [run_config(case_dir, c.name) for c in layout.captures],
         registration="registration.json", test_data="test", test_to_common=world_to_ref,
     )  # fmt: skip
-    fused_dir = case_dir / "fused"
-    seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir", str(fused_dir),
-                    "--experiment-name", "fused", "--timestamp", "bench",
-                    "--pipeline.model.render-all-methods", "True"], case_dir / "fuse_train.log")  # fmt: skip
-    _add_time(case_dir, "ns-train nerfuser", seconds)
-    fused_config = fused_dir / "fused" / "nerfuser" / "bench" / "config.yml"
-    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(fused_config), "--output-path", str(eval_json)],
-                   case_dir / "eval.log")  # fmt: skip
-    _add_time(case_dir, "ns-eval", seconds)
+    fused_config = _fuse_and_eval(case_dir, spec, None)
     renders = case_dir / "renders"
     seconds = _run([str(BIN / "ns-render"), "dataset", "--load-config", str(fused_config), "--output-path",
                     str(renders), "--split", "test", "--rendered-output-names", "rgb"], case_dir / "render.log")
     _add_time(case_dir, "ns-render dataset", seconds)
 
 
+def _fused_config(case_dir: Path, label: str | None) -> Path:
+    """The fused run of the ``fuse`` stage (``label`` None) or of the ``matched`` / ``unmatched`` stage."""
+    return case_dir / ("fused" if label is None else f"fused_{label}") / "fused" / "nerfuser" / "bench" / "config.yml"
+
+
+def _fuse_and_eval(case_dir: Path, spec: Path, matching: bool | None) -> Path:
+    """``ns-train nerfuser`` on the spec, every blend method scored by ``ns-eval`` in one pass; appearance matching at
+    the fused model's default (``matching`` None: the ``fuse`` stage) or forced. The fused run's config."""
+    label = None if matching is None else ("matched" if matching else "unmatched")
+    name = "" if label is None else f"_{label}"
+    options = [] if matching is None else ["--pipeline.model.appearance-matching", str(matching)]
+    fused_config = _fused_config(case_dir, label)
+    seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir",
+                    str(fused_config.parents[3]), "--experiment-name", "fused", "--timestamp", "bench",
+                    "--pipeline.model.render-all-methods", "True", *options],
+                   case_dir / f"fuse{name}_train.log")  # fmt: skip
+    suffix = "" if label is None else f" ({label})"
+    _add_time(case_dir, f"ns-train nerfuser{suffix}", seconds)
+    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(fused_config), "--output-path",
+                    str(case_dir / f"eval{name}.json")], case_dir / f"eval{name}.log")  # fmt: skip
+    _add_time(case_dir, f"ns-eval{suffix}", seconds)
+    return fused_config
+
+
 def fused_appearance_matching(case_dir: Path) -> bool | None:
     """Whether the ``fuse`` stage's run (the fused model's defaults when it ran) had appearance matching on; None
     before that stage."""
-    config = case_dir / "fused" / "fused" / "nerfuser" / "bench" / "config.yml"
+    config = _fused_config(case_dir, None)
     if not config.is_file():
         return None
     found = re.search(r"^\s*appearance_matching:\s*(true|false)\s*$", config.read_text(), re.MULTILINE)
@@ -360,19 +376,8 @@ def appearance_evals(case_dir: Path) -> dict[bool, Path]:
 def stage_appearance(case_dir: Path, matching: bool) -> None:
     """The same fused run with appearance matching (ours) forced on (the ``matched`` stage) or off (``unmatched``),
     scored by ``ns-eval``: every blend method in one pass. Skipped when the ``fuse`` stage's run already had it."""
-    label = "matched" if matching else "unmatched"
-    if not (case_dir / "fusion.json").is_file() or matching in appearance_evals(case_dir):
-        return
-    fused_dir = case_dir / f"fused_{label}"
-    seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(case_dir / "fusion.json"), "--output-dir",
-                    str(fused_dir), "--experiment-name", "fused", "--timestamp", "bench",
-                    "--pipeline.model.render-all-methods", "True", "--pipeline.model.appearance-matching",
-                    str(matching)], case_dir / f"fuse_{label}_train.log")  # fmt: skip
-    _add_time(case_dir, f"ns-train nerfuser ({label})", seconds)
-    fused_config = fused_dir / "fused" / "nerfuser" / "bench" / "config.yml"
-    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(fused_config), "--output-path",
-                    str(case_dir / f"eval_{label}.json")], case_dir / f"eval_{label}.log")  # fmt: skip
-    _add_time(case_dir, f"ns-eval ({label})", seconds)
+    if (case_dir / "fusion.json").is_file() and matching not in appearance_evals(case_dir):
+        _fuse_and_eval(case_dir, case_dir / "fusion.json", matching)
 
 
 def stage_content(layout, case_dir: Path, gt: list[dict]) -> None:
@@ -452,6 +457,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
         record["registration"] = {"errors": None, "refused": (case_dir / "register_failed.txt").is_file()}
     eval_json = case_dir / "eval.json"
     if eval_json.is_file():
+        record["fused_appearance_matching"] = fused_appearance_matching(case_dir)
         results = json.loads(eval_json.read_text())["results"]
         for metric in ("psnr", "ssim"):
             record[f"blend_{metric}"] = {
@@ -538,7 +544,7 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
     for r in records:
         b = r.get("blend_psnr")
         if b:
-            mark = " *matched*" if fused_appearance_matching(Path(r["case_dir"])) else ""
+            mark = " *matched*" if r.get("fused_appearance_matching") else ""
             lines.append(f"| {r['case']}{mark} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
                                                           BLEND_COLUMNS) + " |")  # fmt: skip
     lines += ["", "## Time of every step (s)", ""]
@@ -650,7 +656,7 @@ def write_coverage_report(records: list[dict], path: Path) -> None:
              "| --- | --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
     for r in rows:
         p, q = r["blend_psnr"], r["blend_ssim"]
-        mark = " *matched*" if fused_appearance_matching(Path(r["case_dir"])) else ""
+        mark = " *matched*" if r.get("fused_appearance_matching") else ""
         lines.append(f"| {r['case']}{mark} | {layout_of[r['case']]} | " + " | ".join(
             "-" if p[k] is None else f"{p[k]:.2f} / {q[k]:.3f}" for k, _ in BLEND_COLUMNS) + " |")  # fmt: skip
     lines += ["", "PSNR (dB) / SSIM. Per case, `coverage` minus the best of IDW-2D / IDW-3D / IDW-Sample:", ""]
