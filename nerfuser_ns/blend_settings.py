@@ -1,7 +1,8 @@
 """The render-time blend settings of the fused model: one frozen, validated value (:class:`BlendSettings`).
 
 Every writer builds a new value through it: the model config, the ``NERFUSER_BLEND_METHOD`` / ``NERFUSER_GAMMA`` /
-``NERFUSER_TAU`` environment (sweeps, ``ns-eval``), the viewer's controls. The maths that uses it is
+``NERFUSER_TAU`` / ``NERFUSER_APPEARANCE_MATCHING`` environment (sweeps, ``ns-eval``, ``ns-render``), the viewer's
+controls. The maths that uses it is
 :mod:`nerfuser_ns.blending`.
 """
 
@@ -20,6 +21,8 @@ from nerfuser_ns.coverage import CoverageParams
 ENV_METHOD = "NERFUSER_BLEND_METHOD"
 ENV_GAMMA = "NERFUSER_GAMMA"
 ENV_TAU = "NERFUSER_TAU"
+ENV_APPEARANCE = "NERFUSER_APPEARANCE_MATCHING"
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 SHARE_PALETTE = torch.tensor(
     [
@@ -53,12 +56,14 @@ class BlendSettings:
     reference_nerf: int = 0
     coverage: CoverageParams = CoverageParams()
     """Constants of the ``coverage`` method."""
+    appearance_matching: bool = True
+    """Map each NeRF's colours with its colour map from the registration file (ours)."""
 
     @classmethod
     def from_config(cls, config: Any, environ: Any = None) -> BlendSettings:
-        """A model config's ``blend_method`` / ``gamma`` / ``tau`` / ``reference_nerf``, overridden by
-        ``NERFUSER_BLEND_METHOD`` / ``_GAMMA`` / ``_TAU``; ValueError (one line, naming the option or variable) when a
-        value is unusable."""
+        """A model config's ``blend_method`` / ``gamma`` / ``tau`` / ``reference_nerf`` / ``appearance_matching``,
+        overridden by ``NERFUSER_BLEND_METHOD`` / ``_GAMMA`` / ``_TAU`` / ``_APPEARANCE_MATCHING``; ValueError (one
+        line, naming the option or variable) when a value is unusable."""
         environ = os.environ if environ is None else environ
 
         def number(name: str, value: Any) -> float:
@@ -76,7 +81,13 @@ class BlendSettings:
         elif tau is not None:
             tau = number("tau", tau)
         coverage = getattr(config, "coverage", None) or CoverageParams()
-        return cls(str(method), gamma, tau, int(config.reference_nerf), coverage).checked()
+        matching = bool(getattr(config, "appearance_matching", True))
+        if ENV_APPEARANCE in environ:
+            raw = environ[ENV_APPEARANCE].strip().lower()
+            if raw not in _TRUE + _FALSE:
+                raise ValueError(f"nerfuser: {ENV_APPEARANCE} must be one of {_TRUE + _FALSE}, got {raw!r}")
+            matching = raw in _TRUE
+        return cls(str(method), gamma, tau, int(config.reference_nerf), coverage, matching).checked()
 
     def checked(self, num_nerfs: int | None = None) -> BlendSettings:
         """This value with ``tau = 0`` read as off, or ValueError (one line) naming what is wrong."""
@@ -89,6 +100,8 @@ class BlendSettings:
                              f"got {self.tau}")  # fmt: skip
         if num_nerfs is not None and not -num_nerfs <= self.reference_nerf < num_nerfs:
             raise ValueError(f"nerfuser: reference_nerf {self.reference_nerf} out of range for {num_nerfs} NeRFs")
+        if not isinstance(self.appearance_matching, bool):
+            raise ValueError(f"nerfuser: appearance_matching must be True or False, got {self.appearance_matching!r}")
         self.coverage.checked()
         return self if self.tau != 0 else dataclasses.replace(self, tau=None)
 

@@ -24,9 +24,10 @@ Frames: the sub-models never move; only rays do. ``pixel_area`` (the pixel footp
 angle) is invariant under a similarity: at distance ``t_nerf = t / s`` the footprint is ``pixel_area * t^2 / s^2``,
 exactly the common-frame footprint ``pixel_area * t^2`` in NeRF units. So it is passed on unchanged.
 
-The blend method, gamma and tau can be changed at render time: set :attr:`NerfuserModel.blend_method` (and
-``gamma``/``tau``), use the viewer's "NeRFuser" controls, or set the environment variables ``NERFUSER_BLEND_METHOD``,
-``NERFUSER_GAMMA``, ``NERFUSER_TAU`` (``none`` disables the test) before ``ns-render``/``ns-eval`` start.
+The blend method, gamma, tau and appearance matching can be changed at render time: set
+:attr:`NerfuserModel.blend_method` (and ``gamma``/``tau``/``appearance_matching``), use the viewer's "NeRFuser"
+controls, or set the environment variables ``NERFUSER_BLEND_METHOD``, ``NERFUSER_GAMMA``, ``NERFUSER_TAU`` (``none``
+disables the test), ``NERFUSER_APPEARANCE_MATCHING`` (``0``/``1``) before ``ns-render``/``ns-eval`` start.
 """
 
 from __future__ import annotations
@@ -263,8 +264,8 @@ class NerfuserModel(Model):
         return self.adapters[i]  # type: ignore[index]
 
     def set_blend(self, **changes: Any) -> BlendSettings:
-        """Change blend settings (``method``, ``gamma``, ``tau``, ``reference_nerf``): checked here, once; ValueError
-        (one line) leaves the settings as they were."""
+        """Change blend settings (``method``, ``gamma``, ``tau``, ``reference_nerf``, ``appearance_matching``): checked
+        here, once; ValueError (one line) leaves the settings as they were."""
         self.blend_settings = self.blend_settings.replace(self.num_nerfs, **changes)
         return self.blend_settings
 
@@ -274,6 +275,8 @@ class NerfuserModel(Model):
     tau = property(lambda self: self.blend_settings.tau, lambda self, v: self.set_blend(tau=v))
     reference_nerf = property(lambda self: self.blend_settings.reference_nerf,
                               lambda self, v: self.set_blend(reference_nerf=v))  # fmt: skip
+    appearance_matching = property(lambda self: self.blend_settings.appearance_matching,
+                                   lambda self, v: self.set_blend(appearance_matching=v))  # fmt: skip
 
     def _reference_options(self) -> list[str]:
         """The reference NeRF control's choices: "index: name", so equal names stay distinct."""
@@ -283,7 +286,7 @@ class NerfuserModel(Model):
         """The viewer controls' values for the current settings (tau off shows as 0)."""
         return {"blend_method": self.blend_method, "gamma": float(self.gamma), "tau": float(self.tau or 0.0),
                 "reference_nerf": self._reference_options()[self.reference_nerf % self.num_nerfs],
-                "appearance_matching": bool(self.config.appearance_matching)}  # fmt: skip
+                "appearance_matching": self.appearance_matching}  # fmt: skip
 
     def _add_viewer_controls(self) -> None:
         def set_method(element) -> None:  # noqa: ANN001
@@ -301,7 +304,7 @@ class NerfuserModel(Model):
             self.set_blend(reference_nerf=reference_options.index(element.value))
 
         def set_matching(element) -> None:  # noqa: ANN001
-            self.config.appearance_matching = bool(element.value)
+            self.set_blend(appearance_matching=bool(element.value))
 
         values = self.blend_control_values()
         controls = {
@@ -436,7 +439,7 @@ class NerfuserModel(Model):
             st, en = s.starts / q.scale, s.ends / q.scale
             last = en[..., -1]
             rgbs, background = s.rgbs, s.background_rgb
-            if self.config.appearance_matching and self._colour_mapped[i]:
+            if self.blend_settings.appearance_matching and self._colour_mapped[i]:
                 rgbs = apply_colour_map(rgbs, self.colour_maps[i])
                 background = apply_colour_map(background, self.colour_maps[i])
             parts = [

@@ -23,3 +23,17 @@ def test_tau_zero_turns_the_distance_test_off_everywhere():
     assert BlendSettings.from_config(NerfuserModelConfig(), environ={"NERFUSER_TAU": "0"}).tau is None
     assert BlendSettings.from_config(NerfuserModelConfig(), environ={"NERFUSER_TAU": "none"}).tau is None
     assert BlendSettings.from_config(NerfuserModelConfig(tau=1.2), environ={}).tau == 1.2
+
+
+def test_appearance_matching_comes_from_the_config_and_the_environment():
+    assert BlendSettings.from_config(NerfuserModelConfig(), environ={}).appearance_matching is True
+    off = NerfuserModelConfig(appearance_matching=False)
+    assert BlendSettings.from_config(off, environ={}).appearance_matching is False
+    for raw, want in (("0", False), ("off", False), (" False ", False), ("1", True), ("yes", True)):
+        got = BlendSettings.from_config(NerfuserModelConfig(appearance_matching=not want),
+                                        environ={"NERFUSER_APPEARANCE_MATCHING": raw})  # fmt: skip
+        assert got.appearance_matching is want, raw
+    with pytest.raises(ValueError, match="NERFUSER_APPEARANCE_MATCHING must be one of"):
+        BlendSettings.from_config(NerfuserModelConfig(), environ={"NERFUSER_APPEARANCE_MATCHING": "maybe"})
+    with pytest.raises(ValueError, match="appearance_matching must be True or False"):
+        BlendSettings().replace(appearance_matching="no")

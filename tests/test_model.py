@@ -240,7 +240,7 @@ def test_coverage_without_cameras_is_idw_sample_with_one_warning(pair):
         assert torch.equal(got[key], want[key]), key
 
 
-def test_colour_maps_are_applied_to_each_nerfs_colours_and_can_be_switched_off(trained):
+def test_colour_maps_are_applied_to_each_nerfs_colours_and_can_be_switched_off(trained, monkeypatch):
     colour = np.hstack([np.diag([0.6, 1.0, 1.4]), np.full((3, 1), 0.02)])
     plain = render(fuse_models([("a", trained.model, np.eye(4))]), C2W)["rgb"]
     mapped = fuse_models([("a", trained.model, np.eye(4), None, colour)])  # the default: on
@@ -256,11 +256,17 @@ def test_colour_maps_are_applied_to_each_nerfs_colours_and_can_be_switched_off(t
     close(got.reshape(-1, 3), want.clamp(0, 1), 1e-5)
     off = fuse_models([("a", trained.model, np.eye(4), None, colour)], appearance_matching=False)
     assert torch.equal(render(off, C2W)["rgb"], plain)
+    off.appearance_matching = True  # through set_blend, like the viewer and ns-nerfuser-view
+    assert off.blend_settings.appearance_matching and torch.equal(render(off, C2W)["rgb"], got)
+    monkeypatch.setenv("NERFUSER_APPEARANCE_MATCHING", "0")  # what ns-render / ns-eval read at load
+    assert torch.equal(render(fuse_models([("a", trained.model, np.eye(4), None, colour)]), C2W)["rgb"], plain)
+    monkeypatch.delenv("NERFUSER_APPEARANCE_MATCHING")
     # the viewer's checkbox switches it for the next frame, both ways
     checkbox = mapped.viewer_scene.controls["appearance_matching"]
     assert checkbox.value is True
     checkbox.value = False
     checkbox.cb_hook(checkbox)
+    assert mapped.blend_settings.appearance_matching is False
     assert torch.equal(render(mapped, C2W)["rgb"], plain)
     checkbox.value = True
     checkbox.cb_hook(checkbox)

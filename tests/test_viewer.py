@@ -610,14 +610,17 @@ def test_viewer_opens_a_registration_file_without_test_images(fusion_spec):
     """The common case of a user fusing their own runs: no test images. nerfstudio's viewer reads every attribute
     of the pipeline; the datamanager's eval loader must not raise there."""
     running = start_viewer(fusion_spec.parent / "registration.json", host="127.0.0.1", port=free_port(),
-                           blend={"method": "nearest", "gamma": 7.0, "tau": None})  # fmt: skip
+                           blend={"method": "nearest", "gamma": 7.0, "tau": None,
+                                  "appearance_matching": False})  # fmt: skip
     try:
         assert running.viewer is not None and _get(running.url) is not None
-        # the initial settings (ns-nerfuser-view --blend-method/--gamma/--tau) reach the model and its panel
+        # the initial settings (ns-nerfuser-view --blend-method/--gamma/--tau/--appearance-matching) reach the model
+        # and its panel
         model = running.pipeline.model
-        assert (model.blend_method, model.gamma, model.tau) == ("nearest", 7.0, None)
+        assert (model.blend_method, model.gamma, model.tau, model.appearance_matching) == ("nearest", 7.0, None, False)
         controls = model.viewer_scene.controls
         assert (controls["blend_method"].value, controls["gamma"].value, controls["tau"].value) == ("nearest", 7.0, 0.0)
+        assert controls["appearance_matching"].value is False
         datamanager = running.pipeline.datamanager
         # no test images: no eval dataset, or (when a run's dataset is readable) its training cameras without images
         assert datamanager.eval_dataset is None or isinstance(datamanager.eval_dataset, PlaceholderImageDataset)

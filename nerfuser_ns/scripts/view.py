@@ -63,6 +63,8 @@ class ViewCommand:
     """Initial IDW blending rate (default: the run's, or 5)."""
     tau: float | None = None
     """Initial distance-test ratio; 0 turns the test off (default: the run's, or 1.8)."""
+    appearance_matching: bool | None = None
+    """Map each NeRF's colours to the reference capture's (default: the run's, or on); the panel switches it live."""
     register_if_missing: bool = True
     """Run the registration (minutes) when the spec's registration file does not exist, and write it there."""
     timeout: float | None = None
@@ -77,6 +79,8 @@ class ViewCommand:
             blend["gamma"] = float(self.gamma)
         if self.tau is not None:
             blend["tau"] = None if self.tau == 0 else float(self.tau)
+        if self.appearance_matching is not None:
+            blend["appearance_matching"] = self.appearance_matching
         try:  # before minutes of loading
             BlendSettings().replace(**blend)
         except ValueError as e:
@@ -217,7 +221,8 @@ def start_viewer(
     What ``ns-viewer --load-config`` does, without blocking, on ``host`` (loopback by default) and ``port`` (None:
     7007 or the next free port). ``max_res`` sets the panel's "Max res" (default:
     :data:`nerfuser_ns.viewer.CPU_MAX_RES` on the CPU, nerfstudio's 512 otherwise). ``blend``: initial blend settings
-    (``method``, ``gamma``, ``tau``, ``reference_nerf``) over the run's, through the model's ``set_blend``.
+    (``method``, ``gamma``, ``tau``, ``reference_nerf``, ``appearance_matching``) over the run's, through the model's
+    ``set_blend``.
     """
     check_bind(host, port)  # viser's server thread dies on a bad bind and the caller would wait forever
     config, pipeline, step, run_dir = load_fused_pipeline(
