@@ -273,6 +273,12 @@ def train_env_method(ws):
                        env={"NERFUSER_BLEND_METHOD": "idw-4d"})  # fmt: skip
 
 
+def train_env_appearance(ws):
+    spec = train_good_spec(ws)
+    return _train_call(ws, spec, ["NERFUSER_APPEARANCE_MATCHING must be one of", "'maybe'"],
+                       env={"NERFUSER_APPEARANCE_MATCHING": "maybe"})  # fmt: skip
+
+
 def train_no_runs_no_registration(ws):
     spec = ws.spec("fusion/fusion.json", {"test_data": None})
     return _train_call(ws, spec, [str(spec), "no 'runs' and no registration file", "registration.json"])
@@ -412,6 +418,7 @@ ROWS = [
     pytest.param(Row("train", train_tau_half), id="train-tau-0.5"),
     pytest.param(Row("train", train_env_gamma), id="train-env-NERFUSER_GAMMA-not-a-number"),
     pytest.param(Row("train", train_env_method), id="train-env-NERFUSER_BLEND_METHOD-unknown"),
+    pytest.param(Row("train", train_env_appearance), id="train-env-NERFUSER_APPEARANCE_MATCHING-not-a-switch"),
     pytest.param(Row("train", train_no_runs_no_registration), id="train-spec-without-runs-or-registration"),
     pytest.param(Row("train", train_missing_run), id="train-spec-names-a-missing-run"),
     pytest.param(Row("train", train_sheared_registration), id="train-registration-sheared-transform"),
