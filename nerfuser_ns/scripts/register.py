@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import tyro
 from rich.console import Console
@@ -117,8 +118,35 @@ def _fmt(x, spec: str = ".3g") -> str:
     return "-" if x is None else format(x, spec)
 
 
+def short_names(names: list[str]) -> dict[str, str]:
+    """Each NeRF name as the tables show it: config paths without the parts every one of them shares (the leading
+    folders, a common file name such as ``config.yml``), so that rows stay distinct in a narrow terminal; the names
+    as they are when that would not leave them distinct."""
+    parts = [PurePath(n).parts for n in names]
+    if len(set(names)) < 2:
+        return {n: n for n in names}
+    end = min(len(q) for q in parts)
+    if end > 1 and len({q[-1] for q in parts}) == 1:
+        parts = [q[:-1] for q in parts]  # the same file name everywhere (config.yml)
+        end -= 1
+    start = 0
+    while start < end - 1 and len({q[start] for q in parts}) == 1:
+        start += 1
+    short = ["/".join(q[start:]) for q in parts]
+    if len(set(short)) < len(set(names)) or not all(short):
+        return {n: n for n in names}
+    return dict(zip(names, short, strict=True))
+
+
 def print_summary(record: dict, console: Console = CONSOLE) -> None:
-    """Rich tables: per NeRF (views, scale, residuals) and per pair (overlap, self-check)."""
+    """Rich tables: per NeRF (views, scale, residuals) and per pair (overlap, self-check); NeRFs by their
+    :func:`short_names`."""
+    names = [n["name"] for n in record["nerfs"]]
+    short = short_names(names)
+
+    def pair(pair_names: list[str]) -> str:
+        return " / ".join(short.get(n, n) for n in pair_names)
+
     table = Table(title=f"Registration into the frame of {record['reference']['name']}")
     for col in ("NeRF", "rendered", "kept", "registered", "scale", "scale spread", "rot res (deg)", "centre res",
                 "estimator"):
@@ -126,7 +154,8 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
     for i, n in enumerate(record["nerfs"]):
         v, res = n["views"], n["residuals"]
         row = [
-            n["name"], str(v["rendered"]), str(v["kept"]), str(v["registered"]), _fmt(n["scale_to_reference"], ".4g"),
+            short[n["name"]], str(v["rendered"]), str(v["kept"]), str(v["registered"]),
+            _fmt(n["scale_to_reference"], ".4g"),
             _fmt(n["scale_spread"], ".2e"), _fmt(res["rotation_deg_median"], ".3f"), _fmt(res["centre_median"], ".2e"),
             n["estimator"] + (" + BA" if (record.get("refinement") or {}).get("used")
                               and i != record["reference"]["index"] else ""),
@@ -138,7 +167,7 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         pairs.add_column(col, justify="left" if col == "pair" else "right")
     for p in record["pairs"]:
         sc = p["self_check"]
-        pairs.add_row(" / ".join(p["names"]), str(p["covisible_points"]), "-" if sc is None else _fmt(sc["ncc"], ".3f"),
+        pairs.add_row(pair(p["names"]), str(p["covisible_points"]), "-" if sc is None else _fmt(sc["ncc"], ".3f"),
                       "-" if sc is None else ("[green]passed[/]" if sc["passed"] else "[red]failed[/]"))
     console.print(pairs)
     ref = record.get("refinement")
@@ -158,7 +187,7 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
             hyps = ", ".join(f"{h['inliers']} inliers" + ("" if h["self_check_ncc"] is None
                                                           else f" (NCC {h['self_check_ncc']:.2f})")
                              for h in p["hypotheses"])  # fmt: skip
-            console.print(f"known geometry {' / '.join(p['names'])}: {p['matches']} 3D matches over "
+            console.print(f"known geometry {pair(p['names'])}: {p['matches']} 3D matches over "
                           f"{p['view_pairs']} view pairs; hypotheses: {hyps or 'none'}")  # fmt: skip
         solve = kg["joint_solve"]
         if solve.get("used"):
@@ -166,7 +195,7 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
                           f"{solve['rms_relative_before']:.4f} -> {solve['rms_relative_after']:.4f}")  # fmt: skip
     graph = record.get("graph")
     if graph is not None:
-        _print_graph(graph, console)
+        _print_graph(graph, console, pair)
     t, made = record["timings_s"], record.get("compute_timings_s", {})
     reused = record.get("reused", {})
     sfm_reused = reused.get("sfm", False)
@@ -180,7 +209,7 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
     console.print("time (s): " + ", ".join(parts))
 
 
-def _print_graph(graph: dict, console: Console) -> None:
+def _print_graph(graph: dict, console: Console, pair: Callable[[list[str]], str]) -> None:
     """The pose graph: per candidate pair its retrieval score and verified inliers, its registration's inliers, status
     and residual after the solve; the cycles."""
     cand = graph["candidates"]
@@ -191,7 +220,7 @@ def _print_graph(graph: dict, console: Console) -> None:
     for e in graph["edges"]:
         res = e["residual"] or {}
         inliers = None if e["chosen"] is None else e["hypotheses"][e["chosen"]]["inliers"]
-        table.add_row(" / ".join(e["names"]), _fmt(e["retrieval_score"], ".2f"), _fmt(e.get("verified_inliers"), "d"),
+        table.add_row(pair(e["names"]), _fmt(e["retrieval_score"], ".2f"), _fmt(e.get("verified_inliers"), "d"),
                       _fmt(inliers, "d"),
                       f"[{colour[e['status']]}]{e['status']}[/]", _fmt(res.get("rotation_deg"), ".3f"),
                       _fmt(res.get("translation"), ".2e"), _fmt(res.get("log_scale"), ".2e"), e["reason"])  # fmt: skip

@@ -1,0 +1,34 @@
+"""Tests for nerfuser_ns.scripts.register's summary (what a user reads after ns-nerfuser-register)."""
+
+from rich.console import Console
+
+from nerfuser_ns.scripts.register import print_summary, short_names
+
+A = "/home/me/outputs/part_a/nerfacto/2026-11-27_101500/config.yml"
+B = "/home/me/outputs/part_b/nerfacto/2026-11-27_101500/config.yml"
+
+
+def test_short_names_drop_the_shared_folders_and_file_name():
+    assert short_names([A, B]) == {A: "part_a/nerfacto/2026-11-27_101500", B: "part_b/nerfacto/2026-11-27_101500"}
+    other = "/home/me/outputs/part_a/instant-ngp/run/config.yml"
+    assert short_names([A, other]) == {A: "nerfacto/2026-11-27_101500", other: "instant-ngp/run"}
+    assert short_names(["a", "b"]) == {"a": "a", "b": "b"}  # nothing shared: unchanged
+    assert short_names([A, A]) == {A: A}  # the same run twice: nothing to shorten
+    assert short_names(["x/config.yml", "config.yml"]) == {"x/config.yml": "x/config.yml", "config.yml": "config.yml"}
+
+
+def _record(names: list[str]) -> dict:
+    views = {"rendered": 32, "kept": 32, "registered": 31}
+    residuals = {"rotation_deg_median": 0.1, "centre_median": 0.001}
+    nerfs = [{"name": n, "views": views, "residuals": residuals, "scale_to_reference": 1.0, "scale_spread": 0.001,
+              "estimator": "weiszfeld"} for n in names]  # fmt: skip
+    pair = {"names": names, "covisible_points": 100, "self_check": {"ncc": 0.7, "passed": True}}
+    return {"reference": {"name": names[0], "index": 0}, "nerfs": nerfs, "pairs": [pair], "timings_s": {"render": 1.0}}
+
+
+def test_the_summary_tells_the_runs_apart_in_a_narrow_terminal():
+    console = Console(record=True, width=100)
+    print_summary(_record([A, B]), console)
+    text = console.export_text()
+    assert "part_a/nerfacto/2026-11-27_1" in text and "part_b/nerfacto/2026-11-27_1" in text
+    assert f"frame of {A}" in text.replace("\n", "")  # the title keeps the reference's full path
