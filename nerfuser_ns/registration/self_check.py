@@ -31,7 +31,8 @@ COLOUR_REDUCE = 2
 validation pair: the same gains within 0.3% from every pixel, every 2nd or every 4th)."""
 
 
-def _grayblock_mean(rgb: np.ndarray, factor: int) -> np.ndarray:
+def _gray_block_mean(rgb: np.ndarray, factor: int) -> np.ndarray:
+    """Luma (Rec. 601) of an RGB(A) image, or a grey image as it is, averaged over ``factor`` blocks."""
     gray = rgb[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32) if rgb.ndim == 3 else rgb
     return block_mean(gray, factor)
 
@@ -57,7 +58,7 @@ def ncc(
 
     NaN when fewer than ``min_fraction`` of the (downsampled) pixels are usable or either image is flat there.
     """
-    ga, gb = _grayblock_mean(a, downsample), _grayblock_mean(b, downsample)
+    ga, gb = _gray_block_mean(a, downsample), _gray_block_mean(b, downsample)
     m = np.ones(ga.shape, bool) if mask is None else block_mean(mask.astype(np.float32), downsample) > 0.5
     if m.sum() < max(4, min_fraction * m.size):
         return float("nan")
