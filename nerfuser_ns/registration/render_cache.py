@@ -3,6 +3,8 @@
 Each NeRF's renders go to ``<work_dir>/renders/<key>`` (``images/*.png``, ``accumulation.npz``, ``poses.json``, and
 ``depth.npz`` when depth is asked for), the key a hash of the renderer's own cache key, the sampling settings and
 whether depth is stored: a later run with the same inputs reuses them, and a damaged folder is rendered again.
+A new folder also takes the views the same run already rendered at the same poses and intrinsics in another folder
+(:class:`EarlierViews`), so the automatic choice's ``both`` after ``training`` renders only the hemisphere it adds.
 """
 
 from __future__ import annotations
@@ -156,6 +158,72 @@ def _damage(views: ViewSet) -> str | None:
     return None
 
 
+def _pose_key(c2w: np.ndarray) -> tuple[float, ...]:
+    """A pose as stored in ``poses.json`` (rounded as :func:`json_matrix` rounds), for exact look-ups."""
+    return tuple(np.asarray(json_matrix(c2w), dtype=np.float64).ravel().tolist())
+
+
+class EarlierViews:
+    """Views the same run already rendered at the same intrinsics, in other folders of ``renders_root``: a pose
+    source tried after another (``both`` after ``training``) renders only the poses it adds. Folders that cannot be
+    read are passed over (their views are rendered)."""
+
+    def __init__(self, renders_root: Path, renderer: Renderer, intrinsics: Intrinsics, depth: bool):
+        self.depth, self.reused = depth, 0
+        self._index: dict[tuple[float, ...], tuple[Path, int]] = {}
+        self._arrays: dict[Path, tuple[np.ndarray, np.ndarray | None] | None] = {}
+        key, intr = json.loads(json.dumps(renderer.cache_key())), json.loads(json.dumps(asdict(intrinsics)))
+        folders = sorted(renders_root.iterdir()) if renders_root.is_dir() else []
+        for folder in folders:
+            if folder.name.startswith(".") or (depth and not (folder / "depth.npz").is_file()):
+                continue
+            try:
+                meta = load_render_meta(folder)
+                if meta.get("cache_key") != key or meta.get("intrinsics") != intr:
+                    continue
+                for j, view in enumerate(meta["views"]):
+                    self._index.setdefault(_pose_key(np.asarray(view["c2w"])), (folder, j))
+            except (OSError, ValueError, KeyError, TypeError):
+                continue
+
+    def _load(self, folder: Path) -> tuple[np.ndarray, np.ndarray | None] | None:
+        if folder not in self._arrays:
+            try:
+                with np.load(folder / "accumulation.npz") as z:
+                    acc = z["accumulation"]
+                dep = None
+                if self.depth:
+                    with np.load(folder / "depth.npz") as z:
+                        dep = z["depth"]
+                self._arrays[folder] = (acc, dep)
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+                self._arrays[folder] = None
+        return self._arrays[folder]
+
+    def copy(
+        self, c2w: np.ndarray, image: Path, accs: np.ndarray, depths: np.ndarray | None, k: int
+    ) -> bool:
+        """Fill view ``k`` (its image file, accumulation and depth) from an earlier render of ``c2w``; False when
+        there is none to take."""
+        found = self._index.get(_pose_key(c2w))
+        arrays = None if found is None else self._load(found[0])
+        if found is None or arrays is None or found[1] >= len(arrays[0]):
+            return False
+        folder, j = found
+        source = folder / "images" / f"{j:05d}.png"
+        try:
+            with Image.open(source) as im:
+                im.load()  # a truncated image is rendered again, not copied
+        except (OSError, ValueError):
+            return False
+        shutil.copyfile(source, image)
+        accs[k] = arrays[0][j]
+        if depths is not None and arrays[1] is not None:
+            depths[k] = arrays[1][j]
+        self.reused += 1
+        return True
+
+
 def render_views_cached(
     renderer: Renderer, cfg: PoseSamplingConfig, renders_root: Path, console: Console = CONSOLE, depth: bool = False
 ) -> ViewSet:
@@ -183,6 +251,7 @@ def render_views_cached(
 
     c2w, sources = sample_poses(renderer, cfg)
     intr = cfg.intrinsics()
+    earlier = EarlierViews(renders_root, renderer, intr, depth)
     renders_root.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{key}.tmp-", dir=renders_root))
     start = time.perf_counter()
@@ -194,6 +263,9 @@ def render_views_cached(
         with _progress(console) as bar:
             task = bar.add_task(f"rendering {renderer.name}", total=len(c2w))
             for k in range(len(c2w)):
+                if earlier.copy(c2w[k], tmp / "images" / f"{k:05d}.png", accs, depths, k):
+                    bar.advance(task)
+                    continue
                 # renderers without depth need not take the keyword
                 out = renderer.render(c2w[k : k + 1], intr, **({"depth": True} if depth else {}))
                 rgb = np.asarray(out.rgb[0], dtype=np.float32)
@@ -212,6 +284,9 @@ def render_views_cached(
                 Image.fromarray(to_uint8(rgb)).save(tmp / "images" / f"{k:05d}.png", compress_level=1)
                 accs[k] = np.nan_to_num(acc, nan=0.0).clip(0, 1)
                 bar.advance(task)
+        if earlier.reused:
+            console.print(f"{renderer.name}: {earlier.reused} of {len(c2w)} views taken from earlier renders of the "
+                          f"same run in {renders_root}")  # fmt: skip
         if bad:
             raise RegistrationError(
                 f"{renderer.name}: rendered NaN or inf in {len(bad)} of {len(c2w)} views (a diverged run?); "
@@ -228,6 +303,7 @@ def render_views_cached(
             "cache_key": renderer.cache_key(),
             "sampling": asdict(cfg),
             "intrinsics": asdict(intr),
+            "reused_views": earlier.reused,
             "views": [
                 {"file": f"images/{k:05d}.png", "c2w": json_matrix(c2w[k]), "source": sources[k],
                  "mean_accumulation": float(mean_acc[k]), "kept": bool(kept[k])}

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from PIL import Image
 from registration_helpers import FakeRenderer
 from rich.console import Console
 
@@ -54,3 +55,55 @@ def test_damaged_caches_are_rebuilt_or_named(tmp_path):
     (tmp_path / "sfm" / "observations.npz").write_bytes(b"PK\x03\x04 not a zip")
     with pytest.raises(reg.RegistrationError, match=r"observations.npz: damaged SfM cache .*delete"):
         reg.load_observations(SimpleNamespace(folder=str(tmp_path / "sfm")))
+
+
+class CountingRenderer:
+    """A renderer that counts the views it is asked for (and can be told to stop rendering)."""
+
+    def __init__(self, inner):
+        self.inner, self.name, self.rendered, self.broken = inner, inner.name, 0, False
+
+    def cache_key(self):
+        return self.inner.cache_key()
+
+    def training_poses(self):
+        return self.inner.training_poses()
+
+    def render(self, c2w, intrinsics, **kw):
+        assert not self.broken, "asked to render a view it had rendered before"
+        self.rendered += len(c2w)
+        return self.inner.render(c2w, intrinsics, **kw)
+
+
+@pytest.mark.parametrize("depth", [False, True])
+def test_a_later_pose_source_renders_only_the_poses_it_adds(oc_renderers, tmp_path, depth):
+    sampling = reg.PoseSamplingConfig(source="training", num_poses=5, width=24, height=18, max_training_poses=6)
+    both = reg.PoseSamplingConfig(**{**sampling.__dict__, "source": "both"})
+    counting = CountingRenderer(oc_renderers[0])
+    console = Console(record=True, width=200)
+    train = reg.render_views_cached(counting, sampling, tmp_path / "renders", console, depth=depth)
+    assert counting.rendered == 6
+    mixed = reg.render_views_cached(counting, both, tmp_path / "renders", console, depth=depth)
+    assert counting.rendered == 6 + 5 and not mixed.reused  # only the hemisphere was rendered
+    assert "6 of 11 views taken from earlier renders" in console.export_text()
+    fresh = reg.render_views_cached(CountingRenderer(oc_renderers[0]), both, tmp_path / "fresh", Console(quiet=True),
+                                    depth=depth)  # fmt: skip
+    assert mixed.sources == fresh.sources and np.array_equal(mixed.c2w, fresh.c2w)
+    np.testing.assert_array_equal(mixed.load_accumulation(), fresh.load_accumulation())
+    if depth:
+        np.testing.assert_array_equal(mixed.load_depth(), fresh.load_depth())
+    for k in range(len(mixed.c2w)):
+        a, b = (np.asarray(Image.open(v.folder / "images" / f"{k:05d}.png")) for v in (mixed, fresh))
+        np.testing.assert_array_equal(a, b)
+    # Another run (another cache key) or other intrinsics take nothing; a hemisphere alone is all taken.
+    counting.broken = True
+    hemi = reg.PoseSamplingConfig(**{**sampling.__dict__, "source": "hemisphere"})
+    assert len(reg.render_views_cached(counting, hemi, tmp_path / "renders", Console(quiet=True), depth=depth).c2w) == 5
+    other = CountingRenderer(oc_renderers[1])
+    reg.render_views_cached(other, sampling, tmp_path / "renders", Console(quiet=True), depth=depth)
+    assert other.rendered == 6
+    wider = reg.PoseSamplingConfig(**{**sampling.__dict__, "width": 32})
+    counting.broken = False
+    reg.render_views_cached(counting, wider, tmp_path / "renders", Console(quiet=True), depth=depth)
+    assert counting.rendered == 6 + 5 + 6
+    assert train.folder.is_dir()
