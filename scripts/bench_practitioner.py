@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -45,6 +44,12 @@ from rich.console import Console
 
 from nerfuser_ns import registration, runs, sim3
 from nerfuser_ns.bench import evaluation
+from nerfuser_ns.bench.practitioner_cases import (
+    BLEND_COLUMNS,
+    appearance_evals,
+    fused_appearance_matching,
+    fused_config,
+)
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, make_layout, render, to_uint8, write_capture
 from nerfuser_ns.coverage import CoverageParams
@@ -78,10 +83,6 @@ everything else (camera optimiser, parallel datamanager, scene contraction, loss
 
 STOCK_OPTIONS = ["--vis", "tensorboard"]
 """Stock nerfacto on the GPU: the viewer (ns-train's default) would keep the process alive after training."""
-
-BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
-                 ("idw_sample", "IDW-Sample"), ("coverage", "Coverage (ours)")]  # fmt: skip
-
 
 @dataclass
 class BenchPractitioner:
@@ -326,51 +327,23 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
     _add_time(case_dir, "ns-render dataset", seconds)
 
 
-def _fused_config(case_dir: Path, label: str | None) -> Path:
-    """The fused run of the ``fuse`` stage (``label`` None) or of the ``matched`` / ``unmatched`` stage."""
-    return case_dir / ("fused" if label is None else f"fused_{label}") / "fused" / "nerfuser" / "bench" / "config.yml"
-
-
 def _fuse_and_eval(case_dir: Path, spec: Path, matching: bool | None) -> Path:
     """``ns-train nerfuser`` on the spec, every blend method scored by ``ns-eval`` in one pass; appearance matching at
     the fused model's default (``matching`` None: the ``fuse`` stage) or forced. The fused run's config."""
     label = None if matching is None else ("matched" if matching else "unmatched")
     name = "" if label is None else f"_{label}"
     options = [] if matching is None else ["--pipeline.model.appearance-matching", str(matching)]
-    fused_config = _fused_config(case_dir, label)
+    config = fused_config(case_dir, label)
     seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir",
-                    str(fused_config.parents[3]), "--experiment-name", "fused", "--timestamp", "bench",
+                    str(config.parents[3]), "--experiment-name", "fused", "--timestamp", "bench",
                     "--pipeline.model.render-all-methods", "True", *options],
                    case_dir / f"fuse{name}_train.log")  # fmt: skip
     suffix = "" if label is None else f" ({label})"
     _add_time(case_dir, f"ns-train nerfuser{suffix}", seconds)
-    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(fused_config), "--output-path",
+    seconds = _run([str(BIN / "ns-eval"), "--load-config", str(config), "--output-path",
                     str(case_dir / f"eval{name}.json")], case_dir / f"eval{name}.log")  # fmt: skip
     _add_time(case_dir, f"ns-eval{suffix}", seconds)
-    return fused_config
-
-
-def fused_appearance_matching(case_dir: Path) -> bool | None:
-    """Whether the ``fuse`` stage's run (the fused model's defaults when it ran) had appearance matching on; None
-    before that stage."""
-    config = _fused_config(case_dir, None)
-    if not config.is_file():
-        return None
-    found = re.search(r"^\s*appearance_matching:\s*(true|false)\s*$", config.read_text(), re.MULTILINE)
-    return False if found is None else found.group(1) == "true"  # runs before the option had none: off
-
-
-def appearance_evals(case_dir: Path) -> dict[bool, Path]:
-    """``ns-eval``'s JSON of the case per appearance-matching setting: the ``fuse`` stage's (the defaults) and the
-    ``matched`` / ``unmatched`` stages' (each setting forced)."""
-    out = {}
-    default = fused_appearance_matching(case_dir)
-    if default is not None and (case_dir / "eval.json").is_file():
-        out[default] = case_dir / "eval.json"
-    for setting, name in ((True, "eval_matched.json"), (False, "eval_unmatched.json")):
-        if (case_dir / name).is_file():
-            out[setting] = case_dir / name
-    return out
+    return config
 
 
 def stage_appearance(case_dir: Path, matching: bool) -> None:

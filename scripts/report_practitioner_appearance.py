@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import tyro
-from bench_practitioner import BLEND_COLUMNS, appearance_evals
 
+from nerfuser_ns.bench.practitioner_cases import BLEND_COLUMNS, appearance_evals
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import read_registration
 
