@@ -17,12 +17,12 @@ import torch
 
 from nerfuser_ns.blending import BLEND_METHODS, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.coverage import CoverageParams
+from nerfuser_ns.runtime import OFF_WORDS, ON_WORDS
 
 ENV_METHOD = "NERFUSER_BLEND_METHOD"
 ENV_GAMMA = "NERFUSER_GAMMA"
 ENV_TAU = "NERFUSER_TAU"
 ENV_APPEARANCE = "NERFUSER_APPEARANCE_MATCHING"
-_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 SHARE_PALETTE = torch.tensor(
     [
@@ -84,9 +84,9 @@ class BlendSettings:
         matching = bool(getattr(config, "appearance_matching", True))
         if ENV_APPEARANCE in environ:
             raw = environ[ENV_APPEARANCE].strip().lower()
-            if raw not in _TRUE + _FALSE:
-                raise ValueError(f"nerfuser: {ENV_APPEARANCE} must be one of {_TRUE + _FALSE}, got {raw!r}")
-            matching = raw in _TRUE
+            if raw not in ON_WORDS + OFF_WORDS:
+                raise ValueError(f"nerfuser: {ENV_APPEARANCE} must be one of {ON_WORDS + OFF_WORDS}, got {raw!r}")
+            matching = raw in ON_WORDS
         return cls(str(method), gamma, tau, int(config.reference_nerf), coverage, matching).checked()
 
     def checked(self, num_nerfs: int | None = None) -> BlendSettings:

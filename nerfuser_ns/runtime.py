@@ -107,9 +107,13 @@ def set_malloc_thresholds(mmap_bytes: int, trim_bytes: int) -> bool:
     return bool(mallopt(_M_MMAP_THRESHOLD, mmap_bytes)) and bool(mallopt(_M_TRIM_THRESHOLD, trim_bytes))
 
 
+ON_WORDS, OFF_WORDS = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+"""What the ``NERFUSER_*`` on/off environment switches read as on and as off (lower case)."""
+
+
 def _env_flag(name: str) -> bool:
-    """An on/off environment switch, on unless set to 0, false, no or off."""
-    return os.environ.get(name, "1").strip().lower() not in ("0", "false", "no", "off")
+    """An on/off environment switch, on unless set to one of :data:`OFF_WORDS` (a runtime switch never stops a run)."""
+    return os.environ.get(name, "1").strip().lower() not in OFF_WORDS
 
 
 def set_fast_path(enabled: bool | None) -> None:
