@@ -33,16 +33,18 @@ import torch
 import tyro
 from rich.console import Console
 
-from nerfuser_ns import appearance, runs
-from nerfuser_ns.bench.evaluation import SceneRuns, blend_metrics
-from nerfuser_ns.bench.ground_truth import load_ground_truth_captures, nerf_to_world_from_captures, score_registration
-from nerfuser_ns.bench.scenes import apply_appearance, benchmark_params, generate_scene
+from nerfuser_ns.bench.appearance_blends import (
+    MAX_TEST_VIEWS,
+    REGISTRATION_POSES,
+    REGISTRATION_SIZE,
+    measure,
+    register_pair,
+)
+from nerfuser_ns.bench.evaluation import SceneRuns
+from nerfuser_ns.bench.scenes import benchmark_params, generate_scene
 from nerfuser_ns.bench.training import train_captures
-from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
+from nerfuser_ns.blending import PAPER_BLEND_METHODS
 from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.registration import read_registration
-from nerfuser_ns.scripts import register
-from nerfuser_ns.spec import read_registered_nerfs
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_DB = 0.3
@@ -69,11 +71,11 @@ class BenchAppearance:
     """Training steps of each jittered NeRF (the plain runs' own)."""
     train_seed: int = 42
     """Training seed (the plain runs': scripts/build_demo.py's default)."""
-    registration_size: int = 192
+    registration_size: int = REGISTRATION_SIZE
     """Longer side of the registration renders (the scenes' training images)."""
-    registration_poses: int = 32
+    registration_poses: int = REGISTRATION_POSES
     """Training poses per NeRF rendered for the registration."""
-    max_test_views: int = 12
+    max_test_views: int = MAX_TEST_VIEWS
     """World-frame test views blended."""
     output: Path = Path("outputs/bench/appearance/appearance.json")
     """JSON results."""
@@ -87,77 +89,9 @@ def _register(scene: SceneRuns, cfg: BenchAppearance, console: Console) -> Path:
     if out.is_file():
         console.print(f"{scene.name}: registration reused ({out})")
         return out
-    args = ["--configs", *map(str, scene.configs), "--output", str(out), "--work-dir",
-            str(cfg.root / f"{scene.name}_registration_work"), "--sampling.size", str(cfg.registration_size),
-            "--sampling.max-training-poses", str(cfg.registration_poses)]  # fmt: skip
-    console.print(f"[bold]{scene.name}: ns-nerfuser-register {' '.join(args)}")
-    if register.run(tyro.cli(register.RegisterCommand, args=args)) != 0:
-        raise SystemExit(f"bench_appearance: {scene.name}: registration failed (see above)")
+    register_pair(scene, out, cfg.root / f"{scene.name}_registration_work", cfg.registration_size,
+                  cfg.registration_poses, console)  # fmt: skip
     return out
-
-
-def _gains(scene: SceneRuns) -> list[np.ndarray]:
-    """Each capture's linear-RGB gains (exposure x white balance; ones when it has none)."""
-    out = []
-    for c in scene.ground_truth["captures"]:
-        a = c.get("appearance")
-        out.append(np.ones(3) if a is None else a["exposure"] * np.asarray(a["white_balance"], dtype=np.float64))
-    return out
-
-
-def registration_errors(scene: SceneRuns, record: dict) -> dict:
-    """The registration (its record) against the scene's truth (the paper's errors of the worst NeRF) and what it
-    chose."""
-    truth = nerf_to_world_from_captures(load_ground_truth_captures(scene.scene_dir, scene.captures),
-                                        [runs.read_dataparser_transform(p) for p in scene.configs])  # fmt: skip
-    scored = score_registration(record, truth)
-    worst = max((n["ground_truth"] for n in scored["nerfs"]),
-                key=lambda g: np.inf if g["r_err_deg"] is None else g["r_err_deg"])  # None: NaN, a failure
-    choice = record.get("sampling_choice") or {}
-    return {**{k: worst[k] for k in ("r_err_deg", "t_err", "s_err", "failure")},
-            "source": choice.get("source"), "mode": choice.get("mode", record["settings"].get("mode"))}
-
-
-def measure(scene: SceneRuns, reg: Path, cfg: BenchAppearance, console: Console) -> dict:
-    layout = scene.ground_truth["layout"]
-    gamma, tau = PAPER_OBJECT_CENTRIC if layout == "object-centric" else PAPER_MISSION_BAY
-    models = [(n, runs.load_run(p).model) for n, p in zip(scene.captures, scene.configs, strict=True)]
-    # registered in the scene's capture order (_register passes the configs so): the names are the runs' paths
-    entries = read_registered_nerfs(reg, check_runs=False)
-    if [e.config_path.resolve() for e in entries] != [p.resolve() for p in scene.configs]:
-        raise SystemExit(
-            f"bench_appearance: {reg} registers other runs than {scene.name}'s; delete it to register again"
-        )
-    transforms = [e.nerf_to_common for e in entries]
-    maps = [e.colour_to_reference for e in entries]
-    # the maps as the cross-renders alone fitted them: the reference NeRF's map to its images taken back out
-    record = read_registration(reg)
-    ref_colour = (record.get("reference_colour") or {}).get("map")
-    pair_maps = maps if ref_colour is None else [
-        None if m is None else appearance.compose(appearance.invert(np.asarray(ref_colour)), m) for m in maps]
-    gains = _gains(scene)
-    cams, target = scene.test_views(reference=0, max_views=cfg.max_test_views)
-    target = apply_appearance(target, None if np.array_equal(gains[0], np.ones(3)) else gains[0])
-    result: dict = {"scene": str(scene.scene_dir), "gains": [g.tolist() for g in gains],
-                    "true_maps": [(gains[0] / g).tolist() for g in gains],  # reference colours from NeRF i's
-                    "fitted_maps": [None if m is None else np.diag(m[:, :3]).tolist() for m in maps],
-                    "pair_maps": [None if m is None else np.diag(m[:, :3]).tolist() for m in pair_maps],
-                    "reference_colour": None if ref_colour is None else np.diag(np.asarray(ref_colour)[:, :3]).tolist(),
-                    "registration": registration_errors(scene, record)}  # fmt: skip
-    # the true maps applied to the same runs: what matching could reach with an exact fit (plain: the identity,
-    # which is the unmatched blend)
-    true_maps = [np.hstack([np.diag(gains[0] / g), np.zeros((3, 1))]) for g in gains]
-    differs = any(not np.allclose(g, gains[0]) for g in gains)
-    passes = [("unmatched", None)] + ([("matched_pairs", pair_maps)] if ref_colour is not None else [])
-    passes += [("matched", maps)] + ([("true_matched", true_maps)] if differs else [])
-    for label, colour_maps in passes:
-        t = time.perf_counter()
-        with torch.no_grad():
-            result[label] = blend_metrics(models, transforms, cams, target, gamma=gamma, tau=tau,
-                                          description=f"{scene.name} {label}", colour_maps=colour_maps)  # fmt: skip
-        console.print(f"{scene.name} {label}: " + ", ".join(f"{m} {v['psnr']:.2f}" for m, v in result[label].items())
-                      + f" ({time.perf_counter() - t:.0f} s)")  # fmt: skip
-    return result
 
 
 def write_report(path: Path, data: dict) -> None:
@@ -262,7 +196,7 @@ def main(cfg: BenchAppearance) -> None:
         "max_test_views": cfg.max_test_views,
     }  # fmt: skip
     for key, scene in (("plain", plain), ("jittered", jittered)):
-        data[key] = measure(scene, _register(scene, cfg, console), cfg, console)
+        data[key] = measure(scene, _register(scene, cfg, console), cfg.max_test_views, console)
     write_text_atomic(cfg.output, json.dumps(data, indent=2) + "\n")
     console.print(f"wrote {cfg.output}")
     if cfg.report is not None:

@@ -15,12 +15,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import tyro
-from bench_appearance import BenchAppearance, measure
 from rich.console import Console
 
+from nerfuser_ns.bench.appearance_blends import (
+    MAX_TEST_VIEWS,
+    REGISTRATION_POSES,
+    REGISTRATION_SIZE,
+    measure,
+    register_pair,
+)
 from nerfuser_ns.bench.evaluation import SceneRuns
 from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.scripts import register
 
 
 @dataclass
@@ -40,15 +45,10 @@ class ValidateAppearance:
 def main(cfg: ValidateAppearance) -> None:
     console = Console()
     scene = SceneRuns.from_dirs("validation", cfg.scene, cfg.runs)
-    bench = BenchAppearance()
     out = cfg.registration or cfg.output.with_name("registration_ref.json")
     if not out.is_file():
-        args = ["--configs", *map(str, scene.configs), "--output", str(out), "--work-dir",
-                str(out.with_name("registration_work")), "--sampling.size", str(bench.registration_size),
-                "--sampling.max-training-poses", str(bench.registration_poses)]  # fmt: skip
-        if register.run(tyro.cli(register.RegisterCommand, args=args)) != 0:
-            raise SystemExit(f"validate_appearance: {cfg.scene}: registration failed (see above)")
-    result = measure(scene, out, bench, console)
+        register_pair(scene, out, out.with_name("registration_work"), REGISTRATION_SIZE, REGISTRATION_POSES, console)
+    result = measure(scene, out, MAX_TEST_VIEWS, console)
     write_text_atomic(cfg.output, json.dumps(result, indent=2) + "\n")
     console.print(f"wrote {cfg.output}")
 
