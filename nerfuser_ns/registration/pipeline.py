@@ -68,6 +68,7 @@ from nerfuser_ns.registration.self_check import (
     covisibility,
     cross_render_check,
     failure_message,
+    model_failure,
     spanning_pairs,
 )
 from nerfuser_ns.registration.sfm import check_registered_views, run_sfm
@@ -271,19 +272,22 @@ def register_once(
         renderers=renderers, views=views, sfm=sfm, estimates=estimates, T_to_ref=T_to_ref, T_to_C=T_to_C,
         refinement=refinement, overlap=overlap, checks=checks, config=config, intrinsics=intr, timings=timings,
     )
-    failure = check_failure(result, checks, config)
+    models = model_failure(views, sfm, T_to_ref, config) if config.model_check else None
+    failure = check_failure(result, checks, config, models)
     if failure is not None:
         raise RegistrationFailed(failure, result)
     return result
 
 
 def check_failure(
-    result: RegistrationResult, checks: Sequence[CrossRenderCheck], config: RegistrationConfig
+    result: RegistrationResult, checks: Sequence[CrossRenderCheck], config: RegistrationConfig,
+    models: str | None = None,
 ) -> str | None:
-    """Why the solution cannot be trusted, in one line (cameras that contradict their transform, then a failed
-    cross-render self-check), or None."""
+    """Why the solution cannot be trusted, in one line (cameras that contradict their transform, other SfM models
+    that link the NeRFs otherwise (``models``, :func:`model_failure`'s line), then a failed cross-render self-check),
+    or None."""
     cameras = camera_failure(result.nerfs, config) if config.camera_check else None
-    return cameras or failure_message(checks, [n.name for n in result.nerfs], config)
+    return cameras or models or failure_message(checks, [n.name for n in result.nerfs], config)
 
 
 MIN_DEPTH_SIGMA = 1e-4

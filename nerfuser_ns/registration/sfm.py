@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import Float
 from rich.console import Console
 
 from nerfuser_ns import sim3
@@ -175,9 +176,7 @@ def run_sfm(
         id_to_nerf = {}
         for image_id in rec.reg_image_ids():
             image = rec.image(image_id)
-            cam_from_world = sim3.to_homogeneous(np.asarray(image.cam_from_world().matrix(), dtype=np.float64))
-            # COLMAP cameras use OpenCV axes (looking +z, y down); nerfstudio's are OpenGL: flip y and z.
-            c2w[image.name] = json_matrix(sim3.invert_sim3(cam_from_world) @ OPENGL_FROM_OPENCV)
+            c2w[image.name] = json_matrix(_camera_to_world(image))
             id_to_nerf[image_id] = nerf_of[image.name]
             covisible[image.name] = [0] * len(views)
         # Per image, how many of its 3D points the other NeRFs' images see too (overlap, for the self-check).
@@ -247,6 +246,28 @@ def _save_observations(rec, path: Path) -> None:
             obs_cam=np.asarray(cam, np.int32), obs_point=np.asarray(point, np.int32),
             obs_xy=np.asarray(xy, np.float64).reshape(-1, 2),
         )
+
+
+def _camera_to_world(image) -> Float[np.ndarray, "4 4"]:
+    """A registered pycolmap image's camera-to-world in its model's frame, OpenGL axes."""
+    cam_from_world = sim3.to_homogeneous(np.asarray(image.cam_from_world().matrix(), dtype=np.float64))
+    # COLMAP cameras use OpenCV axes (looking +z, y down); nerfstudio's are OpenGL: flip y and z.
+    return sim3.invert_sim3(cam_from_world) @ OPENGL_FROM_OPENCV
+
+
+def other_models(sfm: SfMResult) -> list[dict[str, np.ndarray]]:
+    """Camera-to-world per registered image (each in its own model's frame, OpenGL axes) of every SfM model but the
+    one the registration uses, largest first; read from the ``sparse/`` folder (empty when it holds no other)."""
+    import pycolmap  # lazy: heavy
+
+    sparse = Path(sfm.folder) / "sparse"
+    folders = sorted((d for d in sparse.glob("*") if d.is_dir()), key=lambda d: (len(d.name), d.name))
+    used, out = set(sfm.c2w), []
+    for rec in sorted((pycolmap.Reconstruction(str(d)) for d in folders), key=lambda r: -r.num_reg_images()):
+        poses = {rec.image(i).name: _camera_to_world(rec.image(i)) for i in rec.reg_image_ids()}
+        if set(poses) != used:
+            out.append(poses)
+    return out
 
 
 def load_observations(sfm: SfMResult) -> dict[str, np.ndarray]:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from registration_helpers import assert_one_line_error, perturb_second_estimate, run_cli, small_config
+from scipy.spatial.transform import Rotation
 
 from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
@@ -161,3 +162,40 @@ def test_a_failed_self_check_suggests_what_fits_its_pose_source(source):
     assert ("--sampling.radius" in message) == (source == "hemisphere")
     assert ("--sampling.max-training-poses" in message) == (source != "hemisphere")
     assert ("--mode known-geometry" in message) == (source != "hemisphere")
+
+
+def _posed(T: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Camera poses moved by a SIM(3) (rigid poses out: the scale moves the centres only)."""
+    R, t, s = sim3.decompose_sim3(T)
+    out = c2w.copy()
+    out[:, :3, :3] = R @ c2w[:, :3, :3]
+    out[:, :3, 3] = s * c2w[:, :3, 3] @ R.T + t
+    return out
+
+
+@pytest.mark.parametrize(("offset_deg", "views_b", "fails"),
+                         [(0.0, 8, False), (1.0, 8, False), (10.0, 8, True), (10.0, 3, False)])  # fmt: skip
+def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_path, offset_deg, views_b, fails):
+    from nerfuser_ns.registration.self_check import model_failure
+
+    rng = np.random.default_rng(3)
+    views = []
+    for name in ("a", "b"):
+        c2w = sim3.make_sim3(sim3.random_rotation(rng, (8,)), rng.normal(size=(8, 3)))
+        views.append(reg.ViewSet(name, tmp_path / name, c2w, ["training"] * 8, np.ones(8), np.ones(8, bool)))
+    T_to_ref = np.stack([np.eye(4), sim3.random_sim3(rng, (0.5, 2.0))])
+    S = sim3.random_sim3(rng, (0.1, 10.0))  # the other model's frame
+    axis = np.array([0.0, 0.0, np.deg2rad(offset_deg)])
+    wrong = sim3.make_sim3(Rotation.from_rotvec(axis).as_matrix())
+    poses = {}
+    for i, vs in enumerate(views):
+        G = _posed(S @ (wrong if i == 1 else np.eye(4)) @ T_to_ref[i], vs.c2w)
+        for k in range(8 if i == 0 else views_b):
+            poses[vs.image_names[k]] = G[k]
+    sfm = reg.SfMResult({}, [], {}, 0, 0.0, 0, "exhaustive")
+    message = model_failure(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[poses])
+    assert (message is not None) == fails
+    if fails:
+        assert message.startswith("b: another SfM model (16 views) links it to a 10.0 deg")
+        assert "--no-model-check" in message
+    assert model_failure(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[]) is None
