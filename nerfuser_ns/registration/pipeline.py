@@ -258,9 +258,11 @@ def register_once(
         T_to_C = T_to_C[ref] @ T_to_ref
     timings["solve"] = time.perf_counter() - t0
 
-    # 5. Overlap between NeRFs (3D points seen by both) and the cross-render self-check.
+    # 5. Other SfM models against the solution, overlap between NeRFs (3D points seen by both) and the cross-render
+    # self-check (not rendered when the models already refuse the solution).
+    models = model_failure(views, sfm, T_to_ref, config) if config.model_check else None
     overlap = covisibility(views, sfm)
-    checked_pairs = spanning_pairs(overlap) if config.self_check_views > 0 else []
+    checked_pairs = spanning_pairs(overlap) if config.self_check_views > 0 and models is None else []
     t0 = time.perf_counter()
     with console.status("self-check: cross-rendering NeRF pairs"):
         checks = cross_render_check(renderers, views, T_to_ref, checked_pairs, intr, config,
@@ -272,7 +274,6 @@ def register_once(
         renderers=renderers, views=views, sfm=sfm, estimates=estimates, T_to_ref=T_to_ref, T_to_C=T_to_C,
         refinement=refinement, overlap=overlap, checks=checks, config=config, intrinsics=intr, timings=timings,
     )
-    models = model_failure(views, sfm, T_to_ref, config) if config.model_check else None
     failure = check_failure(result, checks, config, models)
     if failure is not None:
         raise RegistrationFailed(failure, result)

@@ -199,3 +199,25 @@ def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_pa
         assert message.startswith("b: another SfM model (16 views) links it to a 10.0 deg")
         assert "--no-model-check" in message
     assert model_failure(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[]) is None
+
+
+def test_register_refuses_an_sfm_whose_other_model_links_the_pair_otherwise(oc_renderers, oc_record, work,
+                                                                           monkeypatch, tmp_path, capsys):
+    from pathlib import Path
+
+    from nerfuser_ns.registration import self_check
+
+    folder_b = Path(oc_record["nerfs"][1]["render_folder"]).name
+    turned = sim3.make_sim3(Rotation.from_rotvec(np.radians([0.0, 10.0, 0.0])).as_matrix())
+
+    def other_models(sfm):  # one more model: the same views, capture_b's turned 10 deg about the SfM origin
+        poses = {n: np.asarray(c, dtype=np.float64) for n, c in sfm.c2w.items()}
+        return [{n: _posed(turned, G[None])[0] if n.startswith(folder_b) else G for n, G in poses.items()}]
+
+    monkeypatch.setattr(self_check, "other_models", other_models)
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work)
+    assert_one_line_error(rc, out, err, "capture_b: another SfM model", "10.0 deg", "--no-model-check")
+    rejected = json.loads((work / "rejected_registration.json").read_text())
+    assert rejected["pairs"][0]["self_check"] is None  # refused before the cross-renders
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, model_check=False)
+    assert rc == 0, err
