@@ -308,7 +308,7 @@ def model_failure(
         if len(linked) < 2:
             continue
         a, *others = sorted(linked)
-        scale_a = float(np.cbrt(np.linalg.det(T_to_ref[a][:3, :3])))
+        scale_a = float(sim3.decompose_sim3(T_to_ref[a])[2])
         for j in others:
             e = sim3.sim3_errors(sim3.invert_sim3(linked[a]) @ linked[j], sim3.invert_sim3(T_to_ref[a]) @ T_to_ref[j])
             t_ref = float(e.t_err) * scale_a
