@@ -118,13 +118,31 @@ class ViewSet:
         return np.asarray(Image.open(self.folder / "images" / f"{k:05d}.png").convert("RGB"), dtype=np.float32) / 255
 
     def load_accumulation(self) -> np.ndarray:
-        with np.load(self.folder / "accumulation.npz") as z:
-            return z["accumulation"].astype(np.float32)
+        return _read_array(self.folder, "accumulation").astype(np.float32)
 
     def load_depth(self) -> Float[np.ndarray, "n h w"]:
         """Ray distance per pixel (unit-direction rays, this NeRF's units; 0 where nothing is hit)."""
-        with np.load(self.folder / "depth.npz") as z:
-            return z["depth"].astype(np.float32)
+        return _read_array(self.folder, "depth").astype(np.float32)
+
+
+# What a damaged or truncated cache file raises when read.
+_ARRAY_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
+
+
+def _read_array(folder: Path, name: str) -> np.ndarray:
+    """``<folder>/<name>.npz``'s array ``name``, as stored (raises one of ``_ARRAY_ERRORS`` when damaged)."""
+    with np.load(folder / f"{name}.npz") as z:
+        return z[name]
+
+
+def _decode_error(image: Path) -> str | None:
+    """Why ``image`` cannot be decoded (a missing or truncated file), or None."""
+    try:
+        with Image.open(image) as im:
+            im.load()  # decodes: a truncated file fails here
+    except (OSError, ValueError) as e:
+        return type(e).__name__
+    return None
 
 
 def render_key(renderer: Renderer, cfg: PoseSamplingConfig, depth: bool = False) -> str:
@@ -147,14 +165,11 @@ def _damage(views: ViewSet) -> str | None:
             return "accumulation.npz does not match poses.json"
         if views.has_depth and views.load_depth().shape[0] != len(views.c2w):
             return "depth.npz does not match poses.json"
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+    except _ARRAY_ERRORS as e:
         return f"accumulation.npz or depth.npz: {type(e).__name__}"
     for k in range(len(views.c2w)):
-        try:
-            with Image.open(views.folder / "images" / f"{k:05d}.png") as image:
-                image.load()  # decodes: a truncated file fails here
-        except (OSError, ValueError) as e:
-            return f"images/{k:05d}.png: {type(e).__name__}"
+        if error := _decode_error(views.folder / "images" / f"{k:05d}.png"):
+            return f"images/{k:05d}.png: {error}"
     return None
 
 
@@ -189,14 +204,9 @@ class EarlierViews:
     def _load(self, folder: Path) -> tuple[np.ndarray, np.ndarray | None] | None:
         if folder not in self._arrays:
             try:
-                with np.load(folder / "accumulation.npz") as z:
-                    acc = z["accumulation"]
-                dep = None
-                if self.depth:
-                    with np.load(folder / "depth.npz") as z:
-                        dep = z["depth"]
-                self._arrays[folder] = (acc, dep)
-            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+                self._arrays[folder] = (_read_array(folder, "accumulation"),
+                                        _read_array(folder, "depth") if self.depth else None)  # fmt: skip
+            except _ARRAY_ERRORS:
                 self._arrays[folder] = None
         return self._arrays[folder]
 
@@ -211,10 +221,7 @@ class EarlierViews:
             return False
         folder, j = found
         source = folder / "images" / f"{j:05d}.png"
-        try:
-            with Image.open(source) as im:
-                im.load()  # a truncated image is rendered again, not copied
-        except (OSError, ValueError):
+        if _decode_error(source):  # a truncated image is rendered again, not copied
             return False
         shutil.copyfile(source, image)
         accs[k] = arrays[0][j]
