@@ -16,6 +16,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import psutil
@@ -31,7 +32,7 @@ from nerfuser_ns import runs, runtime, sim3
 from nerfuser_ns.bench import metrics
 from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.cameras import Intrinsics
-from nerfuser_ns.model import fuse_models, map_rays
+from nerfuser_ns.model import NerfuserModel, fuse_models, map_rays
 from nerfuser_ns.registration.record import TrainingCameras
 from nerfuser_ns.spec import read_registered_nerfs
 
@@ -416,6 +417,7 @@ __all__ = [
     "RenderCost",
     "SceneRuns",
     "blend_metrics",
+    "blend_sweep",
     "fused",
     "gamma_sweep",
     "geometric_gammas",
@@ -433,34 +435,53 @@ def gamma_sweep(
     tau: float | None = PAPER_OBJECT_CENTRIC[1],
     methods: Sequence[str] = PAPER_BLEND_METHODS,
 ) -> dict[float, dict[str, dict[str, float]]]:
-    """Metrics of every method for every gamma; the sub-models are queried once per ray chunk and the samples are
-    re-blended per gamma (``NerfuserModel.blend_samples``), so a sweep costs little more than one render."""
+    """Metrics of every method for every gamma (:func:`blend_sweep` over ``{"gamma": g}``)."""
     model = fused(models, transforms, tau=tau, render_all_methods=True, share_outputs=False)
-    cameras = cameras.to(model.device)
+    results = blend_sweep(model, cameras, target, [{"gamma": float(g)} for g in gammas], methods, "gamma sweep")
+    return {float(g): r for g, r in zip(gammas, results, strict=True)}
+
+
+def blend_sweep(
+    model: NerfuserModel,
+    cameras: Cameras,
+    target: Float[Tensor, "n h w 3"],
+    settings: Sequence[dict[str, Any]],
+    methods: Sequence[str] = PAPER_BLEND_METHODS,
+    description: str = "blend sweep",
+) -> list[dict[str, dict[str, float]]]:
+    """PSNR / SSIM of every method under every blend setting (``settings[j]``: changes for
+    ``NerfuserModel.set_blend``, e.g. ``{"gamma": 2.0}`` or ``{"coverage": CoverageParams(sigma_deg=10)}``).
+
+    The sub-models are queried once per ray chunk and the samples re-blended per setting
+    (``NerfuserModel.blend_samples``), so a sweep costs little more than one render. ``model`` must render every
+    method (``render_all_methods``); its settings are restored afterwards."""
     keys = [f"rgb_{m.replace('-', '_')}" for m in methods]
-    images: dict[float, dict[str, list[Tensor]]] = {g: {k: [] for k in keys} for g in gammas}
+    cameras = cameras.to(model.device)
+    before = model.blend_settings
+    images: list[dict[str, list[Tensor]]] = [{k: [] for k in keys} for _ in settings]
     chunk = model.config.eval_num_rays_per_chunk
-    with torch.no_grad():
-        for c in track(range(len(cameras)), description="gamma sweep", transient=True):
-            bundle = cameras.generate_rays(camera_indices=c, keep_shape=True)
-            h, w = bundle.origins.shape[:2]
-            flat = bundle.flatten()
-            parts: dict[float, dict[str, list[Tensor]]] = {g: {k: [] for k in keys} for g in gammas}
-            for start in range(0, len(flat), chunk):
-                rays = flat[start : start + chunk]
-                per_nerf = model.nerf_samples(rays)
-                for g in gammas:
-                    model.set_blend(gamma=float(g))
-                    out = model.blend_samples(rays, per_nerf)
+    try:
+        with torch.no_grad():
+            for c in track(range(len(cameras)), description=description, transient=True):
+                bundle = cameras.generate_rays(camera_indices=c, keep_shape=True)
+                h, w = bundle.origins.shape[:2]
+                flat = bundle.flatten()
+                parts: list[dict[str, list[Tensor]]] = [{k: [] for k in keys} for _ in settings]
+                for start in range(0, len(flat), chunk):
+                    rays = flat[start : start + chunk]
+                    per_nerf = model.nerf_samples(rays)
+                    for j, changes in enumerate(settings):
+                        model.blend_settings = before.replace(model.num_nerfs, **changes)
+                        out = model.blend_samples(rays, per_nerf)
+                        for k in keys:
+                            parts[j][k].append(out[k])
+                for j in range(len(settings)):
                     for k in keys:
-                        parts[g][k].append(out[k])
-            for g in gammas:
-                for k in keys:
-                    images[g][k].append(torch.cat(parts[g][k]).reshape(h, w, -1).cpu())
-    return {
-        float(g): {
-            m: metrics.image_metrics(torch.stack(images[g][k]).clamp(0, 1), target, lpips=False)
-            for m, k in zip(methods, keys, strict=True)
-        }
-        for g in gammas
-    }
+                        images[j][k].append(torch.cat(parts[j][k]).reshape(h, w, -1).cpu())
+    finally:
+        model.blend_settings = before
+    return [
+        {m: metrics.image_metrics(torch.stack(images[j][k]).clamp(0, 1), target, lpips=False)
+         for m, k in zip(methods, keys, strict=True)}  # fmt: skip
+        for j in range(len(settings))
+    ]

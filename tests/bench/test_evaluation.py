@@ -23,6 +23,7 @@ from nerfuser_ns.bench.evaluation import EvaluationError, SceneRuns
 from nerfuser_ns.bench.training import train
 from nerfuser_ns.blending import BLEND_METHODS, PAPER_BLEND_METHODS
 from nerfuser_ns.cameras import camera_rays
+from nerfuser_ns.coverage import CoverageParams
 from nerfuser_ns.registration import NerfEntry, write_minimal_registration
 
 pytestmark = pytest.mark.slow
@@ -300,6 +301,28 @@ def test_gamma_sweep_matches_separate_renders(tiny, models):
             assert sweep[g][m]["psnr"] == pytest.approx(one[m]["psnr"], abs=1e-3)
     assert sweep[0.5]["nearest"]["psnr"] == pytest.approx(sweep[20.0]["nearest"]["psnr"], abs=1e-6)  # no gamma
     assert sweep[0.5]["idw-sample"]["psnr"] != pytest.approx(sweep[20.0]["idw-sample"]["psnr"], abs=1e-4)
+
+
+def test_blend_sweep_over_coverage_constants_matches_separate_renders(tiny, models):
+    """A sweep over coverage constants (what the validation script tunes) scores what separate fused models with
+    those constants score, and leaves the model's own settings as they were."""
+    cams, target = tiny.test_views(max_views=1)
+    T = tiny.nerf_to_common()
+    nerf_cameras = evaluation.training_cameras(tiny, models)
+    methods = ("idw-sample", "coverage")
+    model = evaluation.fused(models, T, nerf_cameras, tau=None, render_all_methods=True, share_outputs=False)
+    before = model.blend_settings
+    settings = [{"coverage": CoverageParams(sigma_deg=5.0, k=1, candidates=4)},
+                {"coverage": CoverageParams(sigma_deg=60.0, k=2, candidates=8), "gamma": 1.0}]
+    sweep = evaluation.blend_sweep(model, cams, target, settings, methods)
+    assert model.blend_settings == before
+    for changes, result in zip(settings, sweep, strict=True):
+        one = evaluation.fused(models, T, nerf_cameras, tau=None, render_all_methods=True, share_outputs=False,
+                               coverage=changes["coverage"], gamma=changes.get("gamma", before.gamma))
+        with torch.no_grad():
+            image = runs.render_views(one, cams, outputs=("rgb_coverage",), progress=False)["rgb_coverage"]
+        assert result["coverage"]["psnr"] == pytest.approx(metrics.image_metrics(image, target)["psnr"], abs=1e-3)
+    assert sweep[0]["coverage"]["psnr"] != pytest.approx(sweep[1]["coverage"]["psnr"], abs=1e-4)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
