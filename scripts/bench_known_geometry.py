@@ -37,13 +37,11 @@ from rich.console import Console
 
 from nerfuser_ns import registration, runs, sim3
 from nerfuser_ns.bench import scenes
+from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, run_config
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig, RegistrationError
 from nerfuser_ns.renderers import NerfstudioRenderer
-
-sys.path.insert(0, str(Path(__file__).parent))
-import bench_practitioner  # noqa: E402 - the practitioner benchmark's ground truth (a script beside this one)
 
 MODES = ("sfm", "known-geometry")
 STEPS_AFTER_RENDER = ("features", "matching", "mapping", "hypotheses", "solve", "self_check")
@@ -84,10 +82,9 @@ def _gt_case(spec: str):
 
 def _practitioner_case(case_dir: Path, device: str):
     name, _, seed = case_dir.name.rpartition("-")
-    layout = bench_practitioner._layout(f"{name}:{seed}", bench_practitioner.BenchPractitioner())
-    gt = bench_practitioner.capture_ground_truth(layout, case_dir, optimized=False)  # the stored truth alone
-    renderers = [NerfstudioRenderer(bench_practitioner.run_config(case_dir, c.name), device=device, name=c.name)
-                 for c in layout.captures]  # fmt: skip
+    layout = case_layout(f"{name}:{seed}")  # the benchmark's default sizes
+    gt = capture_ground_truth(layout, case_dir, optimized=False)  # the stored truth alone
+    renderers = [NerfstudioRenderer(run_config(case_dir, c.name), device=device, name=c.name) for c in layout.captures]
     return renderers, [g["nerf_to_world"] for g in gt]
 
 

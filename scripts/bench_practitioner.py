@@ -47,11 +47,14 @@ from nerfuser_ns.bench import evaluation
 from nerfuser_ns.bench.practitioner_cases import (
     BLEND_COLUMNS,
     appearance_evals,
+    capture_ground_truth,
+    case_layout,
     fused_appearance_matching,
     fused_config,
+    run_config,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
-from nerfuser_ns.bench.scenes import apply_appearance, make_layout, render, to_uint8, write_capture
+from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
 from nerfuser_ns.coverage import CoverageParams
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
@@ -140,15 +143,7 @@ def _run(cmd: list[str], log: Path, cwd: Path | None = None) -> float:
 
 
 def _layout(case: str, cfg: BenchPractitioner):
-    name, seed = case.rsplit(":", 1)
-    params = dict(seed=int(seed), num_views=64, num_test_views=12, width=cfg.width, height=cfg.height)
-    if name in ("street", "drive"):
-        params["num_captures"] = cfg.num_captures
-    if name == "drive":
-        params.update(num_views=96, num_test_views=12)
-    if cfg.appearance_jitter > 0:
-        params.update(appearance_jitter=cfg.appearance_jitter, appearance_bracket=cfg.appearance_bracket)
-    return make_layout(name, **params)
+    return case_layout(case, cfg.width, cfg.height, cfg.num_captures, cfg.appearance_jitter, cfg.appearance_bracket)
 
 
 def case_folder(case: str, cfg: BenchPractitioner) -> str:
@@ -208,10 +203,6 @@ def stage_colmap(layout, case_dir: Path) -> None:
         _add_time(case_dir, f"colmap {cap.name}", seconds)
 
 
-def run_config(case_dir: Path, capture: str) -> Path:
-    return case_dir / "runs" / capture / "nerfacto" / "bench" / "config.yml"
-
-
 def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
     for cap in layout.captures:
         config = run_config(case_dir, cap.name)
@@ -243,70 +234,6 @@ def stage_register(layout, case_dir: Path) -> None:
         write_text_atomic(case_dir / "register_failed.txt", str(e) + "\n")
         return
     _add_time(case_dir, "register", seconds)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Ground truth
-
-
-def _frame_index(file_path: str) -> int:
-    """ns-process-data renames the sorted inputs frame_00001.png...; our inputs are view_<i>.png in order."""
-    return int(Path(file_path).stem.split("_")[-1]) - 1
-
-
-def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list[dict]:
-    """Per capture: the SIM(3) tying its stored (transforms.json) frame to the world, COLMAP's pose noise, and the
-    true NeRF-frame -> world map of its run; with ``optimized``, also the tie through its camera-optimised poses
-    (:func:`_optimized_ground_truth`, which loads the run's model)."""
-    out = []
-    for cap in layout.captures:
-        meta = json.loads((case_dir / "datasets" / cap.name / "transforms.json").read_text())
-        idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
-        stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
-        true = cap.c2w_world[idx]
-        world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
-        data_to_world, rot_err, centre_err = _tie_to_world(stored, true, world_scale)
-        data_to_nerf = runs.read_dataparser_transform(run_config(case_dir, cap.name))
-        record = {
-            "capture": cap.name,
-            "views": cap.num_views,
-            "posed_by_colmap": len(idx),
-            "colmap_rot_err_deg_median": rot_err,
-            "colmap_centre_err_median": centre_err,
-            "nerf_to_world": sim3.compose(data_to_world, sim3.invert_sim3(data_to_nerf)),
-        }
-        if optimized:
-            record.update(_optimized_ground_truth(run_config(case_dir, cap.name), cap.c2w_world, world_scale) or {})
-        out.append(record)
-    return out
-
-
-def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: float) -> dict | None:
-    """The same tie through the run's camera-optimised training poses (NeRF frame) instead of the stored ones.
-
-    The optimiser moves the cameras, and the trained content may follow them; a common part of its corrections would
-    move the content's frame, which this fit follows (per-camera parts show as its residuals). None when the run has
-    no optimiser (then both ties agree) or no checkpoint yet."""
-    if not any(config.parent.glob("nerfstudio_models/*.ckpt")):
-        return None
-    views = runs.training_views(config)
-    model = runs.load_run(config).model
-    c2w = views.cameras.camera_to_worlds
-    optimized = runs.optimized_poses(model, c2w).numpy().astype(np.float64)
-    if np.array_equal(optimized, c2w.numpy()):
-        return None
-    T, rot_err, centre_err = _tie_to_world(optimized, c2w_world[[_frame_index(str(f)) for f in views.image_filenames]],
-                                           world_scale)  # fmt: skip
-    return {"optimized_rot_err_deg_median": rot_err, "optimized_centre_err_median": centre_err,
-            "nerf_to_world_optimized": T}  # fmt: skip
-
-
-def _tie_to_world(poses: np.ndarray, true: np.ndarray, world_scale: float) -> tuple[np.ndarray, float, float]:
-    """The SIM(3) fitted to the true centres of ``poses`` (Umeyama, every view), and its residuals: median rotation
-    (deg) and median centre distance over ``world_scale`` (world units; the fit reports them in the poses' units)."""
-    est = sim3.estimate_sim3_umeyama(poses, true, robust=False)
-    return (est.T, float(np.median(est.rot_residuals_deg)),
-            float(np.median(est.centre_residuals) * est.scale / world_scale))  # fmt: skip
 
 
 def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:

@@ -1,15 +1,45 @@
-"""The practitioner benchmark's case folders (``scripts/bench_practitioner.py``): where each stage leaves its fused
-run and ``ns-eval`` JSON, and the blend columns its reports show. The benchmark writes these folders; its reports
-(``scripts/report_practitioner_appearance.py`` among them) read them through here."""
+"""The practitioner benchmark's cases (``scripts/bench_practitioner.py``): each case's generated layout, where each
+stage leaves its runs, fused run and ``ns-eval`` JSON, the blend columns its reports show, and its ground truth (every
+capture's COLMAP frame tied to the world). The benchmark writes these folders; its reports and the other scripts that
+use its runs (``scripts/report_practitioner_appearance.py``, ``scripts/bench_known_geometry.py``) read them through
+here."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
+
+import numpy as np
+
+from nerfuser_ns import runs, sim3
+from nerfuser_ns.bench.scenes import make_layout
 
 BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
                  ("idw_sample", "IDW-Sample"), ("coverage", "Coverage (ours)")]  # fmt: skip
 """``ns-eval``'s metric suffix and the report's column name of each blend method."""
+
+
+def case_layout(
+    case: str, width: int = 320, height: int = 240, num_captures: int = 2, appearance_jitter: float = 0.0,
+    appearance_bracket: bool = False,
+):  # noqa: ANN201 - a scenes layout
+    """The generated layout of a case ``layout:seed`` as the benchmark renders it (64 views per capture, 96 on drives,
+    12 test views; ``num_captures`` for streets and drives; per-capture appearance differences when jittered)."""
+    name, seed = case.rsplit(":", 1)
+    params = dict(seed=int(seed), num_views=64, num_test_views=12, width=width, height=height)
+    if name in ("street", "drive"):
+        params["num_captures"] = num_captures
+    if name == "drive":
+        params.update(num_views=96, num_test_views=12)
+    if appearance_jitter > 0:
+        params.update(appearance_jitter=appearance_jitter, appearance_bracket=appearance_bracket)
+    return make_layout(name, **params)
+
+
+def run_config(case_dir: Path, capture: str) -> Path:
+    """A capture's stock nerfacto run (the ``train`` stage)."""
+    return case_dir / "runs" / capture / "nerfacto" / "bench" / "config.yml"
 
 
 def fused_config(case_dir: Path, label: str | None) -> Path:
@@ -39,3 +69,67 @@ def appearance_evals(case_dir: Path) -> dict[bool, Path]:
         if (case_dir / name).is_file():
             out[setting] = case_dir / name
     return out
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Ground truth
+
+
+def _frame_index(file_path: str) -> int:
+    """ns-process-data renames the sorted inputs frame_00001.png...; our inputs are view_<i>.png in order."""
+    return int(Path(file_path).stem.split("_")[-1]) - 1
+
+
+def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list[dict]:
+    """Per capture: the SIM(3) tying its stored (transforms.json) frame to the world, COLMAP's pose noise, and the
+    true NeRF-frame -> world map of its run; with ``optimized``, also the tie through its camera-optimised poses
+    (:func:`_optimized_ground_truth`, which loads the run's model)."""
+    out = []
+    for cap in layout.captures:
+        meta = json.loads((case_dir / "datasets" / cap.name / "transforms.json").read_text())
+        idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
+        stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
+        true = cap.c2w_world[idx]
+        world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
+        data_to_world, rot_err, centre_err = tie_to_world(stored, true, world_scale)
+        data_to_nerf = runs.read_dataparser_transform(run_config(case_dir, cap.name))
+        record = {
+            "capture": cap.name,
+            "views": cap.num_views,
+            "posed_by_colmap": len(idx),
+            "colmap_rot_err_deg_median": rot_err,
+            "colmap_centre_err_median": centre_err,
+            "nerf_to_world": sim3.compose(data_to_world, sim3.invert_sim3(data_to_nerf)),
+        }
+        if optimized:
+            record.update(_optimized_ground_truth(run_config(case_dir, cap.name), cap.c2w_world, world_scale) or {})
+        out.append(record)
+    return out
+
+
+def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: float) -> dict | None:
+    """The same tie through the run's camera-optimised training poses (NeRF frame) instead of the stored ones.
+
+    The optimiser moves the cameras, and the trained content may follow them; a common part of its corrections would
+    move the content's frame, which this fit follows (per-camera parts show as its residuals). None when the run has
+    no optimiser (then both ties agree) or no checkpoint yet."""
+    if not any(config.parent.glob("nerfstudio_models/*.ckpt")):
+        return None
+    views = runs.training_views(config)
+    model = runs.load_run(config).model
+    c2w = views.cameras.camera_to_worlds
+    optimized = runs.optimized_poses(model, c2w).numpy().astype(np.float64)
+    if np.array_equal(optimized, c2w.numpy()):
+        return None
+    T, rot_err, centre_err = tie_to_world(optimized, c2w_world[[_frame_index(str(f)) for f in views.image_filenames]],
+                                           world_scale)  # fmt: skip
+    return {"optimized_rot_err_deg_median": rot_err, "optimized_centre_err_median": centre_err,
+            "nerf_to_world_optimized": T}  # fmt: skip
+
+
+def tie_to_world(poses: np.ndarray, true: np.ndarray, world_scale: float) -> tuple[np.ndarray, float, float]:
+    """The SIM(3) fitted to the true centres of ``poses`` (Umeyama, every view), and its residuals: median rotation
+    (deg) and median centre distance over ``world_scale`` (world units; the fit reports them in the poses' units)."""
+    est = sim3.estimate_sim3_umeyama(poses, true, robust=False)
+    return (est.T, float(np.median(est.rot_residuals_deg)),
+            float(np.median(est.centre_residuals) * est.scale / world_scale))  # fmt: skip

@@ -3,7 +3,16 @@ holds which appearance-matching setting."""
 
 from __future__ import annotations
 
-from nerfuser_ns.bench.practitioner_cases import appearance_evals, fused_appearance_matching, fused_config
+import numpy as np
+
+from nerfuser_ns import sim3
+from nerfuser_ns.bench.practitioner_cases import (
+    appearance_evals,
+    case_layout,
+    fused_appearance_matching,
+    fused_config,
+    tie_to_world,
+)
 
 
 def _fused(case, label, text):
@@ -31,3 +40,25 @@ def test_runs_fused_before_the_option_had_it_off(tmp_path):
     _fused(tmp_path / "off", None, "pipeline:\n  model:\n    appearance_matching: false\n")
     (tmp_path / "off" / "eval.json").write_text("{}")
     assert appearance_evals(tmp_path / "off") == {False: tmp_path / "off" / "eval.json"}
+
+
+def test_case_layouts_as_the_benchmark_renders_them():
+    drive = case_layout("drive:4", num_captures=3)
+    assert len(drive.captures) == 3 and all(c.num_views == 96 for c in drive.captures)
+    assert len(case_layout("street:4", num_captures=3).captures) == 3
+    oc = case_layout("object-centric:4", width=64, height=48)
+    assert len(oc.captures) == 2 and all(c.num_views == 64 for c in oc.captures)
+
+
+def test_tie_to_world_recovers_a_capture_frame_and_measures_its_noise():
+    rng = np.random.default_rng(0)
+    true = sim3.make_sim3(sim3.random_rotation(rng, (20,)), rng.normal(size=(20, 3)) * 3.0)
+    world_to_stored = sim3.random_sim3(rng)  # what COLMAP's own frame and scale make of the world
+    stored = sim3.transform_poses(world_to_stored, true)
+    T, rot_err, centre_err = tie_to_world(stored, true, world_scale=3.0)
+    np.testing.assert_allclose(T, sim3.invert_sim3(world_to_stored), atol=1e-9)
+    assert rot_err < 1e-6 and centre_err < 1e-9
+    noisy = stored.copy()
+    noisy[:, :3, 3] += rng.normal(size=(20, 3)) * 0.05 * sim3.decompose_sim3(world_to_stored)[2]  # 5 cm in the world
+    _, _, centre_err = tie_to_world(noisy, true, world_scale=1.0)
+    assert 0.02 < centre_err < 0.12  # reported in world units: about the noise put in
