@@ -4,7 +4,8 @@ reported case), against the paper's IDW methods at the run's own defaults.
 
 The sub-models are queried once per ray chunk and re-blended per setting (``evaluation.blend_sweep``). The choice
 rule is fixed here, before any run: the setting with the largest mean over the cases of ``coverage - best IDW``
-(PSNR, dB); on a tie (within 0.01 dB) the current defaults stay.
+(PSNR, dB); on a tie (within 0.01 dB) the current defaults stay. The fused model's ``gamma`` is not swept: it is
+one exponent shared with the IDW methods.
 
 Example (a street validation seed, after ``python scripts/bench_practitioner.py --cases street:0``):
     python scripts/validate_coverage.py --cases outputs/practitioner/street-0 \\
@@ -47,15 +48,13 @@ class ValidateCoverage:
     """Angular widths to try."""
     k: list[int] = field(default_factory=lambda: [1, 4])
     """Cameras per score to try."""
-    gammas: list[float] = field(default_factory=lambda: [2.0, 5.0, 10.0])
-    """Coverage exponents to try (the IDW methods keep the run's own gamma)."""
     max_views: int | None = None
-    """Score at most this many test views per case (evenly spaced); None: all."""
+    """Score at most this many test views per case (evenly spaced; a setting costs about one query pass); None: all."""
 
 
 def _grid(cfg: ValidateCoverage) -> list[dict]:
-    return [{"sigma_deg": s, "k": k, "candidates": max(16, k), "gamma": g}
-            for s, k, g in itertools.product(cfg.sigma_deg, cfg.k, cfg.gammas)]  # fmt: skip
+    # gamma stays the run's: the fused model's one exponent, shared with the IDW methods
+    return [{"sigma_deg": s, "k": k, "candidates": max(16, k)} for s, k in itertools.product(cfg.sigma_deg, cfg.k)]
 
 
 def _test_views(pipeline, max_views: int | None) -> tuple:  # noqa: ANN001 - a nerfstudio pipeline
@@ -75,8 +74,7 @@ def score_case(case_dir: Path, grid: list[dict], max_views: int | None, console:
     model.config.render_all_methods = True
     cameras, target = _test_views(loaded.pipeline, max_views)
     defaults = model.blend_settings
-    settings = [{}] + [{"coverage": CoverageParams(g["sigma_deg"], g["k"], g["candidates"]), "gamma": g["gamma"]}
-                       for g in grid]  # fmt: skip
+    settings = [{}] + [{"coverage": CoverageParams(g["sigma_deg"], g["k"], g["candidates"])} for g in grid]
     start = time.perf_counter()
     results = evaluation.blend_sweep(model, cameras, target, settings, METHODS, f"{case_dir.name}: sweep")
     seconds = time.perf_counter() - start
@@ -96,7 +94,7 @@ def choose(cases: list[dict], defaults: dict) -> dict:
     """The rule of the module docstring: the grid setting with the best mean ``coverage - best IDW``."""
     grid = cases[0]["grid"]
     means = [float(np.mean([c["grid"][j]["minus_best_idw_db"] for c in cases])) for j in range(len(grid))]
-    key = ("sigma_deg", "k", "candidates", "gamma")
+    key = ("sigma_deg", "k", "candidates")
     at_defaults = next((j for j, g in enumerate(grid) if all(g[x] == defaults[x] for x in key)), None)
     best = int(np.argmax(means))
     if at_defaults is not None and means[best] - means[at_defaults] <= TIE_DB:
@@ -110,14 +108,14 @@ def _markdown(cases: list[dict], choice: dict, command: str) -> str:
              "Coverage PSNR minus the best of IDW-2D / IDW-3D / IDW-Sample at the run's defaults (dB); the choice rule "
              "(fixed before the run): best mean over the cases, the defaults on a tie within "
              f"{TIE_DB} dB.", "",
-             "| sigma (deg) | k | gamma | " + " | ".join(c["case"] for c in cases) + " | mean |",
-             "| ---: | ---: | ---: | " + " | ".join("---:" for _ in cases) + " | ---: |"]  # fmt: skip
+             "| sigma (deg) | k | " + " | ".join(c["case"] for c in cases) + " | mean |",
+             "| ---: | ---: | " + " | ".join("---:" for _ in cases) + " | ---: |"]  # fmt: skip
     for j, g in enumerate(cases[0]["grid"]):
         values = [c["grid"][j]["minus_best_idw_db"] for c in cases]
-        lines.append(f"| {g['sigma_deg']:g} | {g['k']} | {g['gamma']:g} | "
+        lines.append(f"| {g['sigma_deg']:g} | {g['k']} | "
                      + " | ".join(f"{v:+.2f}" for v in values) + f" | {np.mean(values):+.3f} |")  # fmt: skip
-    lines += ["", f"Chosen: sigma {choice['sigma_deg']:g} deg, k {choice['k']}, candidates {choice['candidates']}, "
-              f"gamma {choice['gamma']:g} (mean {choice['mean_minus_best_idw_db']:+.3f} dB)."]  # fmt: skip
+    lines += ["", f"Chosen: sigma {choice['sigma_deg']:g} deg, k {choice['k']}, candidates {choice['candidates']} "
+              f"(mean {choice['mean_minus_best_idw_db']:+.3f} dB)."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
@@ -131,9 +129,8 @@ def main(cfg: ValidateCoverage) -> None:
     cases = [score_case(case, grid, cfg.max_views, console) for case in cfg.cases]
     choice = choose(cases, cases[0]["defaults"])
     command = (f"python scripts/validate_coverage.py --cases {' '.join(map(str, cfg.cases))} --output {cfg.output} "
-               f"--sigma-deg {' '.join(map(str, cfg.sigma_deg))} --k {' '.join(map(str, cfg.k))} "
-               f"--gammas {' '.join(map(str, cfg.gammas))}" + ("" if cfg.max_views is None else
-                                                              f" --max-views {cfg.max_views}"))  # fmt: skip
+               f"--sigma-deg {' '.join(map(str, cfg.sigma_deg))} --k {' '.join(map(str, cfg.k))}"
+               + ("" if cfg.max_views is None else f" --max-views {cfg.max_views}"))  # fmt: skip
     write_text_atomic(cfg.output, json.dumps({"command": command, "cases": cases, "choice": choice}, indent=2) + "\n")
     write_text_atomic(cfg.output.with_suffix(".md"), _markdown(cases, choice, command))
     console.print(f"chosen: {choice}; wrote {cfg.output}")

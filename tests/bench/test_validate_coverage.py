@@ -1,0 +1,50 @@
+"""The coverage-constant validation script's choice rule (scripts/validate_coverage.py)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def script():
+    spec = importlib.util.spec_from_file_location("validate_coverage_script", ROOT / "scripts/validate_coverage.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass resolves its annotations through it
+    spec.loader.exec_module(module)
+    return module
+
+
+def _case(deltas: dict[tuple[float, int], float]) -> dict:
+    return {"grid": [{"sigma_deg": s, "k": k, "candidates": max(16, k), "minus_best_idw_db": d}
+                     for (s, k), d in deltas.items()]}  # fmt: skip
+
+
+DEFAULTS = {"sigma_deg": 20.0, "k": 4, "candidates": 16}
+
+
+def test_the_best_mean_over_the_cases_wins(script):
+    cases = [_case({(10.0, 1): 0.5, (20.0, 4): 0.1, (40.0, 4): 0.0}),
+             _case({(10.0, 1): -0.2, (20.0, 4): 0.1, (40.0, 4): 0.4})]  # fmt: skip
+    choice = script.choose(cases, DEFAULTS)
+    assert (choice["sigma_deg"], choice["k"]) == (40.0, 4)  # mean 0.2 beats 0.15 and 0.1
+    assert choice["mean_minus_best_idw_db"] == pytest.approx(0.2)
+    assert choice["mean_minus_best_idw_db_at_defaults"] == pytest.approx(0.1)
+
+
+def test_the_defaults_stay_on_a_tie(script):
+    cases = [_case({(10.0, 1): 0.105, (20.0, 4): 0.1})]
+    assert (script.choose(cases, DEFAULTS)["sigma_deg"], script.choose(cases, DEFAULTS)["k"]) == (20.0, 4)
+    cases = [_case({(10.0, 1): 0.12, (20.0, 4): 0.1})]
+    assert script.choose(cases, DEFAULTS)["sigma_deg"] == 10.0
+
+
+def test_the_grid_has_enough_candidates_for_k(script):
+    cfg = script.ValidateCoverage(cases=[], output=Path("x.json"), sigma_deg=[10.0], k=[1, 32])
+    assert script._grid(cfg) == [{"sigma_deg": 10.0, "k": 1, "candidates": 16},
+                                 {"sigma_deg": 10.0, "k": 32, "candidates": 32}]  # fmt: skip
