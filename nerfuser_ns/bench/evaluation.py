@@ -453,8 +453,9 @@ def blend_sweep(
     ``NerfuserModel.set_blend``, e.g. ``{"gamma": 2.0}`` or ``{"coverage": CoverageParams(sigma_deg=10)}``).
 
     The sub-models are queried once per ray chunk and the samples re-blended per setting
-    (``NerfuserModel.blend_samples``), so a sweep costs little more than one render. ``model`` must render every
-    method (``render_all_methods``); its settings are restored afterwards."""
+    (``NerfuserModel.blend_samples``): a gamma sweep costs little more than one render, while other coverage
+    constants score every sample again per setting. ``model`` must render every method (``render_all_methods``); its
+    settings are restored afterwards."""
     keys = [f"rgb_{m.replace('-', '_')}" for m in methods]
     cameras = cameras.to(model.device)
     before = model.blend_settings
