@@ -413,26 +413,29 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
              "stored (COLMAP) frame tied to the world by a SIM(3) fitted to the true centres of the views COLMAP "
              "posed, composed with the run's dataparser transform (applied_transform included). COLMAP's own pose "
              "noise (the same fit's residuals) is reported beside the errors: it bounds what any registration of "
-             "these runs can reach. Test views: the scene's world-posed test capture, mapped into the reference "
+             "these runs can reach; so does its bend (the rotation between the ties of the first and the second half "
+             "of a capture's views, 0 where one SIM(3) fits the whole reconstruction). Test views: the scene's "
+             "world-posed test capture, mapped into the reference "
              "NeRF's frame by the ground truth; the blend uses the estimated registration.", ""]  # fmt: skip
     lines += ["## Registration (every default of `ns-nerfuser-register`)", "",
               "| case | NeRF | r_err (deg) | t_err | s_err | ok | COLMAP rot err (deg, median per capture) | "
-              "COLMAP centre err (median, / capture radius) | posed / views |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+              "COLMAP centre err (median, / capture radius) | COLMAP bend (deg) | posed / views |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     all_err = []
     for r in records:
         colmap = r["captures"]
         col = ", ".join(f"{c['colmap_rot_err_deg_median']:.3f}" for c in colmap)
         cen = ", ".join(f"{c['colmap_centre_err_median']:.4f}" for c in colmap)
         posed = ", ".join(f"{c['posed_by_colmap']}/{c['views']}" for c in colmap)
+        bend = ", ".join(f"{c['colmap_bend_deg']:.2f}" for c in colmap)
         errs = r["registration"]["errors"]
         if errs is None:
-            lines.append(f"| {r['case']} | - | refused | | | FAIL | {col} | {cen} | {posed} |")
+            lines.append(f"| {r['case']} | - | refused | | | FAIL | {col} | {cen} | {bend} | {posed} |")
             all_err.append(None)
             continue
         for e in errs:
             lines.append(f"| {r['case']} | {_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | "
-                         f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {col} | {cen} | {posed} |")
+                         f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {col} | {cen} | {bend} | {posed} |")
             all_err.append(e)
     lines += _optimized_truth_section(records)
     lines += _content_section(records)

@@ -99,6 +99,7 @@ def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list
             "posed_by_colmap": len(idx),
             "colmap_rot_err_deg_median": rot_err,
             "colmap_centre_err_median": centre_err,
+            "colmap_bend_deg": colmap_bend_deg(stored, true, idx, world_scale),
             "nerf_to_world": sim3.compose(data_to_world, sim3.invert_sim3(data_to_nerf)),
         }
         if optimized:
@@ -125,6 +126,16 @@ def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: fl
                                            world_scale)  # fmt: skip
     return {"optimized_rot_err_deg_median": rot_err, "optimized_centre_err_median": centre_err,
             "nerf_to_world_optimized": T}  # fmt: skip
+
+
+def colmap_bend_deg(stored: np.ndarray, true: np.ndarray, idx: np.ndarray, world_scale: float) -> float:
+    """Rotation (deg) between the ties of the first and the second half of a capture's posed views (capture order):
+    0 where one SIM(3) maps COLMAP's frame to the world; on a bent reconstruction no single tie is the truth, and the
+    errors measured against it carry about this much."""
+    order = np.argsort(idx)
+    halves = [order[: len(order) // 2], order[len(order) // 2 :]]
+    first, second = (tie_to_world(stored[h], true[h], world_scale)[0] for h in halves)
+    return float(sim3.sim3_errors(first, second).r_err_deg)
 
 
 def tie_to_world(poses: np.ndarray, true: np.ndarray, world_scale: float) -> tuple[np.ndarray, float, float]:

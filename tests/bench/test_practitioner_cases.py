@@ -4,11 +4,13 @@ holds which appearance-matching setting."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from nerfuser_ns import sim3
 from nerfuser_ns.bench.practitioner_cases import (
     appearance_evals,
     case_layout,
+    colmap_bend_deg,
     fused_appearance_matching,
     fused_config,
     tie_to_world,
@@ -62,3 +64,19 @@ def test_tie_to_world_recovers_a_capture_frame_and_measures_its_noise():
     noisy[:, :3, 3] += rng.normal(size=(20, 3)) * 0.05 * sim3.decompose_sim3(world_to_stored)[2]  # 5 cm in the world
     _, _, centre_err = tie_to_world(noisy, true, world_scale=1.0)
     assert 0.02 < centre_err < 0.12  # reported in world units: about the noise put in
+
+
+def test_colmap_bend_is_zero_for_a_rigid_reconstruction_and_sees_a_bent_one():
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 10, 40)
+    path = np.stack([t, np.sin(t), 0.3 * np.cos(2 * t)], -1)  # not a line: centres alone fix the frame
+    true = sim3.make_sim3(np.broadcast_to(np.eye(3), (40, 3, 3)), path)
+    idx = rng.permutation(40)  # COLMAP's frame order is not the capture's
+    stored = sim3.transform_poses(sim3.random_sim3(rng), true[idx])
+    assert colmap_bend_deg(stored, true[idx], idx, 5.0) < 1e-6
+    bent = true.copy()  # the second half of the path turned by 3 deg about the half-way point
+    turn = sim3.make_sim3(sim3.so3_exp(np.array([0.0, 0.0, np.radians(3.0)])))
+    half = sim3.compose(sim3.make_sim3(np.eye(3), true[20, :3, 3]), turn,
+                        sim3.make_sim3(np.eye(3), -true[20, :3, 3]))  # fmt: skip
+    bent[20:] = sim3.transform_poses(half, true[20:])
+    assert colmap_bend_deg(bent[idx], true[idx], idx, 5.0) == pytest.approx(3.0, abs=0.05)
