@@ -31,7 +31,7 @@ def case_layout(
     if name in ("street", "drive"):
         params["num_captures"] = num_captures
     if name == "drive":
-        params.update(num_views=96, num_test_views=12)
+        params["num_views"] = 96
     if appearance_jitter > 0:
         params.update(appearance_jitter=appearance_jitter, appearance_bracket=appearance_bracket)
     return make_layout(name, **params)
