@@ -49,7 +49,7 @@ class ValidateCoverage:
     k: list[int] = field(default_factory=lambda: [1, 4])
     """Cameras per score to try."""
     max_views: int | None = None
-    """Score at most this many test views per case (evenly spaced; a setting costs about one query pass); None: all."""
+    """Score at most this many test views per case (evenly spaced); None: all."""
 
 
 def _grid(cfg: ValidateCoverage) -> list[dict]:
