@@ -60,6 +60,10 @@ class BenchBlendingConfig:
     reported ratio is the median of the per-repeat ratios."""
     seed: int = 0
     """Seed of the timed rays."""
+    cost_methods: list[str] = field(default_factory=lambda: ["idw-sample"])
+    """Blend methods whose render cost is timed (e.g. --cost-methods idw-sample coverage)."""
+    device: str | None = None
+    """Torch device the NeRFs render on (default: cuda when torch sees a GPU, else cpu)."""
     output: Path = Path("outputs/bench/blending.json")
     """JSON results (a markdown summary is written beside it)."""
 
@@ -69,7 +73,9 @@ def _markdown(report: dict) -> str:
         f"# Blending benchmark ({report['date']})",
         "",
         f"`{report['command']}` on {report['machine']['platform']}, {report['machine']['cpus']} CPUs, "
-        f"torch {report['machine']['torch']}.",
+        f"torch {report['machine']['torch']}"
+        + (f", rendering on {report['machine']['gpu']}" if report["machine"].get("gpu") else "")
+        + ".",
         "",
         "PSNR (dB) / SSIM on the world-frame test views; LPIPS "
         + ("included." if report["lpips_available"] else "not available (no local AlexNet weights)."),
@@ -115,31 +121,36 @@ def _markdown(report: dict) -> str:
                 cells = [f"{sweep[g][m]['psnr']:.2f}" for m in methods]
                 cells = [f"**{c}**" if sweep[g][m]["psnr"] == best else c for c, m in zip(cells, methods, strict=True)]
                 lines.append(f"| {float(g):g} | " + " | ".join(cells) + " |")
-        c = s["cost"]
-        subs = " + ".join(f"{t * 1000:.0f}" for t in c["sub_s"])
-        lines += [
-            "",
-            f"Cost ({c['num_rays']} rays, {c['repeats']} repeats, each running every pass once in a shuffled order): "
-            f"median fused {c['method']} {c['fused_s'] * 1000:.0f} ms vs sub-models {subs} ms; median per-repeat "
-            f"ratio **{c['ratio']:.3f}**"
-            + (" (quartiles {:.3f}-{:.3f})".format(*c["ratio_quartiles"]) if "ratio_quartiles" in c else "")
-            + "; peak memory added "
-            f"per chunk: fused {c['fused_peak_mib']:.0f} MiB, sub-models "
-            + ", ".join(f"{m:.0f}" for m in c["sub_peak_mib"])
-            + " MiB.",
-        ]
-        if "ratio_used" in c:
-            used = " + ".join(f"{t * 1000:.0f}" for t in c["sub_used_s"])
-            rays = ", ".join(str(r) for r in c["used_rays"])
-            lines += [
-                "",
-                f"The fused model queries each sub-model only on the rays whose distance test it passes ({rays} of "
-                f"{c['num_rays']}); against the sub-models on just those rays ({used} ms) the ratio is "
-                f"**{c['ratio_used']:.3f}** (quartiles {c['ratio_used_quartiles'][0]:.3f}-"
-                f"{c['ratio_used_quartiles'][1]:.3f}): the merge and blend overhead.",
-            ]
+        for c in (s.get("costs") or {"": s["cost"]}).values():
+            lines += _cost_lines(c)
         lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def _cost_lines(c: dict) -> list[str]:
+    subs = " + ".join(f"{t * 1000:.0f}" for t in c["sub_s"])
+    lines = [
+        "",
+        f"Cost ({c['num_rays']} rays, {c['repeats']} repeats, each running every pass once in a shuffled order): "
+        f"median fused {c['method']} {c['fused_s'] * 1000:.0f} ms vs sub-models {subs} ms; median per-repeat "
+        f"ratio **{c['ratio']:.3f}**"
+        + (" (quartiles {:.3f}-{:.3f})".format(*c["ratio_quartiles"]) if "ratio_quartiles" in c else "")
+        + "; peak memory added "
+        f"per chunk: fused {c['fused_peak_mib']:.0f} MiB, sub-models "
+        + ", ".join(f"{m:.0f}" for m in c["sub_peak_mib"])
+        + " MiB.",
+    ]
+    if "ratio_used" in c:
+        used = " + ".join(f"{t * 1000:.0f}" for t in c["sub_used_s"])
+        rays = ", ".join(str(r) for r in c["used_rays"])
+        lines += [
+            "",
+            f"The fused model queries each sub-model only on the rays whose distance test it passes ({rays} of "
+            f"{c['num_rays']}); against the sub-models on just those rays ({used} ms) the ratio is "
+            f"**{c['ratio_used']:.3f}** (quartiles {c['ratio_used_quartiles'][0]:.3f}-"
+            f"{c['ratio_used_quartiles'][1]:.3f}): the merge and blend overhead.",
+        ]
+    return lines
 
 
 def main(cfg: BenchBlendingConfig) -> None:
@@ -149,10 +160,19 @@ def main(cfg: BenchBlendingConfig) -> None:
     from nerfuser_ns import runs, runtime
     from nerfuser_ns.bench import evaluation
     from nerfuser_ns.bench.evaluation import SceneRuns
-    from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_OBJECT_CENTRIC
+    from nerfuser_ns.blending import BLEND_METHODS, PAPER_BLEND_METHODS, PAPER_OBJECT_CENTRIC
     from nerfuser_ns.files import write_text_atomic
 
     console = Console()
+    try:  # before any work
+        device = str(runs.check_device(cfg.device or runs.default_device()))
+    except runs.RunLoadError as e:
+        raise SystemExit(f"bench_blending: {e}") from None
+    for method in cfg.cost_methods:
+        if method not in BLEND_METHODS:
+            raise SystemExit(f"--cost-methods: unknown blend method {method!r}; choose from {', '.join(BLEND_METHODS)}")
+    if "coverage" in cfg.cost_methods and not cfg.coverage:
+        raise SystemExit("--cost-methods coverage needs the runs' training cameras: drop --no-coverage")
     registrations = {}
     for spec in cfg.registrations:
         name, _, path = spec.partition("=")
@@ -168,7 +188,8 @@ def main(cfg: BenchBlendingConfig) -> None:
         raise SystemExit(f"--registrations: no scene named {unknown[0]!r} in --scenes")
     report = {
         "command": "python scripts/bench_blending.py " + " ".join(sys.argv[1:]),
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__},
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
+                    "device": device, "gpu": torch.cuda.get_device_name() if device.startswith("cuda") else None},
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "lpips_available": runtime.lpips_weights_available(),
         "scenes": [],
@@ -179,7 +200,8 @@ def main(cfg: BenchBlendingConfig) -> None:
         gamma = cfg.gamma if cfg.gamma is not None else gamma
         tau = cfg.tau if cfg.tau is not None else tau
         console.rule(f"{scene.name} ({layout}, gamma {gamma}, tau {tau})")
-        models = [(n, runs.load_run(p).model) for n, p in zip(scene.captures, scene.configs, strict=True)]
+        pairs = zip(scene.captures, scene.configs, strict=True)
+        models = [(n, runs.load_run(p, device=device).model) for n, p in pairs]
         cams, target = scene.test_views(max_views=cfg.max_test_views)
         transforms = {"ground-truth": scene.nerf_to_common()}
         if scene.name in registrations:
@@ -198,18 +220,22 @@ def main(cfg: BenchBlendingConfig) -> None:
             result = evaluation.gamma_sweep(models, transforms["ground-truth"], cams, target, cfg.gammas, tau=tau)
             sweep = {str(g): v for g, v in result.items()}
             console.print("gamma sweep", {g: round(v["idw-sample"]["psnr"], 2) for g, v in sweep.items()})
-        cost = evaluation.measure_render_cost(
-            models, transforms["ground-truth"], cams, num_rays=cfg.timing_rays, repeats=cfg.timing_repeats,
-            seed=cfg.seed, gamma=gamma, tau=tau,
-        )  # fmt: skip
-        console.print(
-            f"cost: ratio {cost.ratio:.3f} (fused {cost.fused_s:.3f} s, subs {cost.sub_s}); "
-            f"against the queried rays only {cost.ratio_used:.3f} (rays {cost.used_rays})"
-        )
+        costs = {}
+        for method in cfg.cost_methods:
+            cost = evaluation.measure_render_cost(
+                models, transforms["ground-truth"], cams, num_rays=cfg.timing_rays, repeats=cfg.timing_repeats,
+                method=method, seed=cfg.seed, gamma=gamma, tau=tau, nerf_cameras=nerf_cameras,
+            )  # fmt: skip
+            costs[method] = cost.as_dict()
+            console.print(
+                f"cost ({method}): ratio {cost.ratio:.3f} (fused {cost.fused_s:.3f} s, subs {cost.sub_s}); "
+                f"against the queried rays only {cost.ratio_used:.3f} (rays {cost.used_rays})"
+            )
         report["scenes"].append({
             "name": scene.name, "scene_dir": str(scene.scene_dir), "layout": layout, "gamma": gamma, "tau": tau,
             "test_views": len(cams), "registration": str(registrations.get(scene.name)), "quality": quality,
-            "gamma_sweep": sweep, "cost": cost.as_dict(),
+            "gamma_sweep": sweep, "cost": costs[cfg.cost_methods[0]],
+            "costs": costs,
         })  # fmt: skip
         write_text_atomic(cfg.output, json.dumps(report, indent=2) + "\n")
         write_text_atomic(cfg.output.with_suffix(".md"), _markdown(report))

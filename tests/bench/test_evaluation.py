@@ -192,6 +192,11 @@ def test_bench_blending_script(tiny, tmp_path):
         "128",
         "--timing-repeats",
         "1",
+        "--cost-methods",
+        "idw-sample",
+        "coverage",
+        "--device",
+        "cpu",
         "--gammas",
         "5",
         "1000",
@@ -209,8 +214,11 @@ def test_bench_blending_script(tiny, tmp_path):
     assert set(q) == {"ground-truth", "estimated"} and set(q["estimated"]) == set(BLEND_METHODS)
     for m in BLEND_METHODS:  # the "estimated" transforms are the ground truth here
         assert q["estimated"][m]["psnr"] == pytest.approx(q["ground-truth"][m]["psnr"], abs=1e-4)
+    assert report["machine"]["device"] == "cpu" and report["machine"]["gpu"] is None
+    assert list(scene["costs"]) == ["idw-sample", "coverage"]
+    assert [c["method"] for c in scene["costs"].values()] == ["idw-sample", "coverage"]
     cost = scene["cost"]
-    assert cost["num_rays"] == 128
+    assert cost == scene["costs"]["idw-sample"] and cost["num_rays"] == 128
     # the nearest NeRF of each ray is always queried, never more rays than the chunk holds
     assert sum(cost["used_rays"]) >= 128 and all(0 <= r <= 128 for r in cost["used_rays"])
     assert len(cost["sub_used_s"]) == len(cost["sub_s"]) and cost["ratio_used"] > 0
@@ -222,10 +230,15 @@ def test_bench_blending_script(tiny, tmp_path):
     for m in ("nerf", "nearest"):  # no gamma in them
         assert sweep["1000.0"][m]["psnr"] == pytest.approx(sweep["5.0"][m]["psnr"], abs=1e-6)
     md = out.with_suffix(".md").read_text()
-    assert "IDW-Sample - Nearest" in md and "ratio" in md and "| 1000 |" in md
+    assert "IDW-Sample - Nearest" in md and "| 1000 |" in md
+    assert "median fused idw-sample" in md and "median fused coverage" in md
     assert not list(out.parent.glob("*.tmp"))
     bad = subprocess.run(cmd[:3] + ["nope=/nonexistent:/nonexistent"], capture_output=True, text=True)
     assert bad.returncode != 0 and "ground_truth.json: no ground truth" in bad.stderr
+    for args, message in ((["--cost-methods", "idw"], "unknown blend method 'idw'"),
+                          (["--cost-methods", "coverage", "--no-coverage"], "drop --no-coverage")):  # fmt: skip
+        bad = subprocess.run(cmd + args, capture_output=True, text=True, cwd=tmp_path)
+        assert bad.returncode != 0 and message in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_test_surface_points_are_where_the_test_rays_hit(tiny):
