@@ -10,6 +10,9 @@ one exponent shared with the IDW methods.
 Example (a street validation seed, after ``python scripts/bench_practitioner.py --cases street:0``):
     python scripts/validate_coverage.py --cases outputs/practitioner/street-0 \\
         --output reports/validate_coverage.json
+
+Cases scored by an earlier run (its JSON, the same grid) join the choice with ``--earlier``, so a validation seed
+of another layout adds to the ones already scored without scoring them again.
 """
 
 from __future__ import annotations
@@ -50,6 +53,8 @@ class ValidateCoverage:
     """Cameras per score to try."""
     max_views: int | None = None
     """Score at most this many test views per case (evenly spaced); None: all."""
+    earlier: list[Path] = field(default_factory=list)
+    """JSON outputs of earlier runs whose cases join the choice (their grid and defaults must be this run's)."""
 
 
 def _grid(cfg: ValidateCoverage) -> list[dict]:
@@ -90,6 +95,27 @@ def score_case(case_dir: Path, grid: list[dict], max_views: int | None, console:
             "grid": rows}  # fmt: skip
 
 
+def earlier_cases(paths: list[Path], grid: list[dict], defaults: dict) -> list[dict]:
+    """The cases scored by earlier runs (their JSON outputs), each marked with its file; SystemExit (one line) where
+    a file is unreadable or scored another grid or other defaults, whose figures the choice cannot mix."""
+    key = ("sigma_deg", "k", "candidates")
+    out = []
+    for path in paths:
+        try:
+            cases = json.loads(Path(path).read_text())["cases"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise SystemExit(f"validate_coverage: --earlier {path}: not an output of this script ({e})") from None
+        for case in cases:
+            if [tuple(g[x] for x in key) for g in case["grid"]] != [tuple(g[x] for x in key) for g in grid]:
+                raise SystemExit(f"validate_coverage: --earlier {path}: {case['case']} was scored on another grid; "
+                                 "run with the same --sigma-deg and --k")  # fmt: skip
+            if {x: case["defaults"][x] for x in key} != {x: defaults[x] for x in key}:
+                raise SystemExit(f"validate_coverage: --earlier {path}: {case['case']} was scored against other "
+                                 "defaults; score it again")  # fmt: skip
+            out.append({**case, "from": str(path)})
+    return out
+
+
 def choose(cases: list[dict], defaults: dict) -> dict:
     """The rule of the module docstring: the grid setting with the best mean ``coverage - best IDW``."""
     grid = cases[0]["grid"]
@@ -104,7 +130,9 @@ def choose(cases: list[dict], defaults: dict) -> dict:
 
 
 def _markdown(cases: list[dict], choice: dict, command: str) -> str:
+    earlier = [f"{c['case']} from `{c['from']}`" for c in cases if "from" in c]
     lines = ["# Coverage constants on validation cases (ours)", "", f"`{command}`", "",
+             *([f"Scored by earlier runs: {', '.join(earlier)}.", ""] if earlier else []),
              "Coverage PSNR minus the best of IDW-2D / IDW-3D / IDW-Sample at the run's defaults (dB); the choice rule "
              "(fixed before the run): best mean over the cases, the defaults on a tie within "
              f"{TIE_DB} dB.", "",
@@ -126,11 +154,19 @@ def main(cfg: ValidateCoverage) -> None:
             raise SystemExit(f"validate_coverage: {case} has no fused run ({fused_config(case, None)}); run "
                              "scripts/bench_practitioner.py's fuse stage on it first")  # fmt: skip
     grid = _grid(cfg)
-    cases = [score_case(case, grid, cfg.max_views, console) for case in cfg.cases]
+    defaults = asdict(CoverageParams())
+    earlier = earlier_cases(cfg.earlier, grid, defaults)  # before any work
+    names = [c["case"] for c in earlier] + [Path(c).name for c in cfg.cases]
+    if not names:
+        raise SystemExit("validate_coverage: no cases: name fused case folders with --cases (or --earlier outputs)")
+    if len(set(names)) < len(names):
+        raise SystemExit(f"validate_coverage: a case is named twice among --cases and --earlier: {names}")
+    cases = [score_case(case, grid, cfg.max_views, console) for case in cfg.cases] + earlier
     choice = choose(cases, cases[0]["defaults"])
     command = (f"python scripts/validate_coverage.py --cases {' '.join(map(str, cfg.cases))} --output {cfg.output} "
                f"--sigma-deg {' '.join(map(str, cfg.sigma_deg))} --k {' '.join(map(str, cfg.k))}"
-               + ("" if cfg.max_views is None else f" --max-views {cfg.max_views}"))  # fmt: skip
+               + ("" if cfg.max_views is None else f" --max-views {cfg.max_views}")
+               + (f" --earlier {' '.join(map(str, cfg.earlier))}" if cfg.earlier else ""))  # fmt: skip
     write_text_atomic(cfg.output, json.dumps({"command": command, "cases": cases, "choice": choice}, indent=2) + "\n")
     write_text_atomic(cfg.output.with_suffix(".md"), _markdown(cases, choice, command))
     console.print(f"chosen: {choice}; wrote {cfg.output}")

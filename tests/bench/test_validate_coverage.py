@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -48,3 +49,24 @@ def test_the_grid_has_enough_candidates_for_k(script):
     cfg = script.ValidateCoverage(cases=[], output=Path("x.json"), sigma_deg=[10.0], k=[1, 32])
     assert script._grid(cfg) == [{"sigma_deg": 10.0, "k": 1, "candidates": 16},
                                  {"sigma_deg": 10.0, "k": 32, "candidates": 32}]  # fmt: skip
+
+
+def test_earlier_runs_join_the_choice_only_on_the_same_grid(script, tmp_path):
+    cfg = script.ValidateCoverage(cases=[], output=Path("x.json"), sigma_deg=[20.0, 40.0], k=[4])
+    grid = script._grid(cfg)
+    earlier = {**_case({(20.0, 4): 0.17, (40.0, 4): 0.19}), "case": "street-0", "defaults": {**DEFAULTS, "gamma": 5.0}}
+    path = tmp_path / "street0.json"
+    path.write_text(json.dumps({"command": "...", "cases": [earlier], "choice": {}}))
+    (case,) = script.earlier_cases([path], grid, DEFAULTS)
+    assert case["case"] == "street-0" and case["from"] == str(path) and case["grid"] == earlier["grid"]
+    drive = _case({(20.0, 4): 0.10, (40.0, 4): -0.2})  # a new case where the wider sigma loses more than it won
+    choice = script.choose([drive, case], DEFAULTS)
+    assert (choice["sigma_deg"], choice["mean_minus_best_idw_db"]) == (20.0, pytest.approx(0.135))
+    for grid_, defaults, message in ((script._grid(script.ValidateCoverage(cases=[], output=path, sigma_deg=[10.0],
+                                                                           k=[4])), DEFAULTS, "another grid"),
+                                     (grid, {**DEFAULTS, "sigma_deg": 40.0}, "other defaults")):  # fmt: skip
+        with pytest.raises(SystemExit, match=message):
+            script.earlier_cases([path], grid_, defaults)
+    path.write_text("{")
+    with pytest.raises(SystemExit, match="not an output of this script"):
+        script.earlier_cases([path], grid, DEFAULTS)
