@@ -39,7 +39,8 @@ Evaluation: along a ray (unit ``d``, ``t`` the distance from ``o``) every term i
 by ``z``, is a half-line of ``t``, so ``vis_j = [t_lo <= t <= t_hi]``; ``theta_j = atan2(|(o - c_j) x d|,
 (o - c_j) . d + t)``, the cross product the same at every ``t``; ``r_q / r_j = a sqrt(fx fy) t / z``. These constants
 are computed once per ray and candidate, then each sample costs a dozen elementwise operations, one camera at a time,
-its ``q_j`` folded at once into a running sum of the ``k`` best.
+its ``q_j`` folded at once into a running sum of the ``k`` best (on the CPU, where a row stays in cache). Off the CPU
+the same operations run on blocks of cameras at once, folded with ``topk``: a GPU pays per kernel, not per row.
 
 Blend weights (normalisation (1) of IDW-Sample, :func:`nerfuser_ns.blending.coverage_weights`): ``w_i ∝ S_i^gamma``
 over the NeRFs passing the distance test, i.e. IDW on the pseudo-distance ``1 / S_i``: ``gamma`` keeps its meaning
@@ -257,6 +258,29 @@ def _qualities(
         yield q
 
 
+def _sum_of_best_blocked(
+    terms: _RayCameraTerms, dist: Float[Tensor, "n num_points"], sigma_deg: float, k: int, max_elements: int = 1 << 25
+) -> Float[Tensor, "num_points n"]:
+    """The sum of the ``k`` best ``q_j`` at distances ``dist``: :func:`_qualities` and :func:`_sum_of_largest`'s
+    result from the same elementwise operations, on blocks of cameras at once (``[b, S, n]``, at most
+    ``max_elements`` per block) folded with ``topk``. For GPUs, where the row loop's hundreds of small kernels cost
+    more than the arithmetic; the CPU keeps the row loop, which stays in cache."""
+    t = dist.T.contiguous()[None]  # [1, S, n]
+    c = -0.5 / math.radians(sigma_deg) ** 2
+    m = terms.along.shape[0]
+    block = max(1, min(m, max_elements // max(1, t.numel())))
+    top = t.new_zeros((k,) + t.shape[1:])  # zeros stand in for missing cameras, as in the row loop
+    for start in range(0, m, block):
+        along, across, z0, zd, t_lo, t_hi, gain = (
+            getattr(terms, f.name)[start : start + block, None] for f in fields(terms)
+        )  # each [b, 1, n]
+        q = torch.atan2(across, along + t).square_().mul_(c).exp_()  # A_j
+        res = torch.div(t, torch.addcmul(z0, t, zd)).mul_(gain).clamp_(max=1.0)  # P_j
+        q.mul_(res).masked_fill_((t < t_lo) | (t > t_hi), 0.0)
+        top = torch.cat([top, q]).topk(k, dim=0).values
+    return top.sum(0)
+
+
 def _sum_of_largest(rows: Iterable[Float[Tensor, "*bs"]], k: int) -> Float[Tensor, "*bs"]:
     """The sum of the ``k`` largest of non-negative ``rows`` (at least one), elementwise, zeros standing in for missing
     ones: each row inserted into a running top ``k`` (descending) with elementwise max / min, in place. Exact (the
@@ -379,5 +403,9 @@ def coverage_scores(
     ids = None
     if t_rep is not None and len(index) > params.candidates:
         ids = _candidates(index, frames, d, t_rep * norm[:, 0], pixel_widths, params)
-    rows = _qualities(_candidate_terms(index, frames, pixel_widths, ids), ts * norm, params.sigma_deg)
-    return (_sum_of_largest(rows, params.k) / params.k).T.contiguous()
+    terms = _candidate_terms(index, frames, pixel_widths, ids)
+    if frames.device.type == "cpu":
+        best = _sum_of_largest(_qualities(terms, ts * norm, params.sigma_deg), params.k)
+    else:
+        best = _sum_of_best_blocked(terms, ts * norm, params.sigma_deg, params.k)
+    return (best / params.k).T.contiguous()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerfuser_ns import sim3
+from nerfuser_ns import coverage, sim3
 from nerfuser_ns.blending import coverage_weights, idw_weights, sample_coverage_scores
 from nerfuser_ns.coverage import CameraIndex, CoverageParams, camera_quality, candidate_cameras, coverage_scores
 from nerfuser_ns.merging import MergedSamples
@@ -123,6 +123,23 @@ def test_candidates_are_the_best_cameras_at_the_representative_point():
     torch.testing.assert_close(near[:, 3], exact[:, 3])
     every = CoverageParams(sigma_deg=40.0, k=2, candidates=12)
     torch.testing.assert_close(coverage_scores(index, o, d, ts, pw, every, t_rep=t_rep), exact)
+
+
+@pytest.mark.parametrize(("k", "candidates", "max_elements"), [(3, 16, 1 << 25), (3, 16, 40), (12, 12, 7)])
+def test_the_gpu_blocks_give_the_row_loops_scores(k, candidates, max_elements):
+    """The blocked evaluation (GPUs) is the row loop's (CPU) arithmetic: the same scores, in one block or many, with
+    more cameras wanted than a ray has (zeros stand in)."""
+    c2w, intr = random_cameras(20, seed=12)
+    index = index_of(c2w, intr)
+    o, d, ts, pw = rays(9, seed=13)
+    params = CoverageParams(sigma_deg=30.0, k=k, candidates=candidates)
+    frames = coverage._camera_frames(index, o, d)
+    ids = coverage._candidates(index, frames, d, ts[:, 3], pw, params)[:, : min(candidates, 8)]
+    terms = coverage._candidate_terms(index, frames, pw, ids)
+    rows = coverage._sum_of_largest(coverage._qualities(terms, ts, 30.0), k)
+    blocked = coverage._sum_of_best_blocked(terms, ts, 30.0, k, max_elements=max_elements)
+    assert (rows > 0).any() and (rows < 1e-12).any()  # seen and unseen points both tested
+    torch.testing.assert_close(blocked, rows, rtol=1e-12, atol=1e-15)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
