@@ -179,14 +179,17 @@ def register(
         mode = "" if choice.config.mode == config.mode else f", mode [bold]{choice.config.mode}[/]"
         console.print(f"pose sampling: [bold]{sc.source}[/]{mode} ({choice.reason}), renders {sc.width}x{sc.height} "
                       f"at {sc.fov_deg:.1f} deg")  # fmt: skip
+        start = time.perf_counter()
         try:
             result = register_once(renderers, choice.config, work_dir, console)
         except RegistrationError as e:
             if n + 1 == len(choices):
                 raise
             reason = str(e).splitlines()[0]
-            tried.append({"source": sc.source, "mode": choice.config.mode, "error": reason})
-            console.print(f"[yellow]{sc.source} poses did not register ({choice.config.mode}): {reason}[/]")
+            seconds = round(time.perf_counter() - start, 1)  # its renders and SfM, which the record keeps no other way
+            tried.append({"source": sc.source, "mode": choice.config.mode, "error": reason, "seconds": seconds})
+            console.print(f"[yellow]{sc.source} poses did not register ({choice.config.mode}, {seconds:.0f} s): "
+                          f"{reason}[/]")  # fmt: skip
             continue
         result.sampling_choice = {"requested": config.sampling.source, "source": sc.source,
                                   "mode": choice.config.mode, "reason": choice.reason,

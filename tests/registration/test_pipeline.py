@@ -193,10 +193,11 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     record = reg.register(oc_renderers, reg.RegistrationConfig(), work, console=console)
     assert tried == ["training", "both"]
     assert record.sampling_choice["source"] == "both"
-    assert record.sampling_choice["tried_before"] == [
-        {"source": "training", "mode": "sfm", "error": "a: its views form a separate SfM model"}]
+    (before,) = record.sampling_choice["tried_before"]
+    assert before.pop("seconds") >= 0  # the failed attempt's own time: its renders stay in the work folder
+    assert before == {"source": "training", "mode": "sfm", "error": "a: its views form a separate SfM model"}
     text = console.export_text()
-    for line in ("pose sampling: training", "training poses did not register (sfm)", "pose sampling: both",
+    for line in ("pose sampling: training", "training poses did not register (sfm, 0 s)", "pose sampling: both",
                  "appearance: the colour maps stay relative to the reference NeRF"):
         assert line in text, line
     assert "no training images" in record.reference_colour["skipped"]  # ground-truth renderers have none
