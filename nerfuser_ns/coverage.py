@@ -246,16 +246,24 @@ def _qualities(
     q, res = torch.empty_like(t), torch.empty_like(t)
     hidden = torch.empty_like(t, dtype=torch.bool)
     per_camera = zip(*(getattr(terms, f.name)[:, None] for f in fields(terms)), strict=True)  # each [1, n]
-    for along, across, z0, zd, t_lo, t_hi, gain in per_camera:
-        # theta_j in [0, pi] as acos of the cosine would be, and accurate near 0 and pi
-        torch.atan2(across, torch.add(along, t, out=q), out=q)
-        q.square_().mul_(c).exp_()  # A_j
-        # P_j = min(1, r_q / r_j) = min(1, gain t / z); where hidden, z may be <= 0: masked below.
-        torch.div(t, torch.addcmul(z0, t, zd, out=res), out=res)
-        q.mul_(res.mul_(gain).clamp_(max=1.0))
-        q.masked_fill_(torch.lt(t, t_lo, out=hidden), 0.0)
-        q.masked_fill_(torch.gt(t, t_hi, out=hidden), 0.0)
-        yield q
+    for row_terms in per_camera:
+        yield _quality_into(q, res, hidden, t, c, *row_terms)
+
+
+def _quality_into(
+    q: Tensor, res: Tensor, hidden: Tensor, t: Tensor, c: float,
+    along: Tensor, across: Tensor, z0: Tensor, zd: Tensor, t_lo: Tensor, t_hi: Tensor, gain: Tensor,
+) -> Tensor:  # fmt: skip
+    """``q_j`` at distances ``t`` from one camera's (or a block's) terms, made in the buffers ``q``, ``res`` and
+    ``hidden`` of the broadcast shape; ``c = -1 / (2 sigma^2)``. The row loop and the GPU blocks share it."""
+    # theta_j in [0, pi] as acos of the cosine would be, and accurate near 0 and pi
+    torch.atan2(across, torch.add(along, t, out=q), out=q)
+    q.square_().mul_(c).exp_()  # A_j
+    # P_j = min(1, r_q / r_j) = min(1, gain t / z); where hidden, z may be <= 0: masked below.
+    torch.div(t, torch.addcmul(z0, t, zd, out=res), out=res)
+    q.mul_(res.mul_(gain).clamp_(max=1.0))
+    q.masked_fill_(torch.lt(t, t_lo, out=hidden), 0.0)
+    return q.masked_fill_(torch.gt(t, t_hi, out=hidden), 0.0)
 
 
 def _sum_of_best_blocked(
@@ -270,13 +278,11 @@ def _sum_of_best_blocked(
     m = terms.along.shape[0]
     block = max(1, min(m, max_elements // max(1, t.numel())))
     top = t.new_zeros((k,) + t.shape[1:])  # zeros stand in for missing cameras, as in the row loop
+    buffers = t.new_empty((2, block) + t.shape[1:]), t.new_empty((block,) + t.shape[1:], dtype=torch.bool)
     for start in range(0, m, block):
-        along, across, z0, zd, t_lo, t_hi, gain = (
-            getattr(terms, f.name)[start : start + block, None] for f in fields(terms)
-        )  # each [b, 1, n]
-        q = torch.atan2(across, along + t).square_().mul_(c).exp_()  # A_j
-        res = torch.div(t, torch.addcmul(z0, t, zd)).mul_(gain).clamp_(max=1.0)  # P_j
-        q.mul_(res).masked_fill_((t < t_lo) | (t > t_hi), 0.0)
+        block_terms = [getattr(terms, f.name)[start : start + block, None] for f in fields(terms)]  # each [b, 1, n]
+        b = len(block_terms[0])
+        q = _quality_into(buffers[0][0, :b], buffers[0][1, :b], buffers[1][:b], t, c, *block_terms)
         top = torch.cat([top, q]).topk(k, dim=0).values
     return top.sum(0)
 
