@@ -94,6 +94,19 @@ def resolve_config_path(config_path: Path | str) -> Path:
     return config_path
 
 
+def run_names(config_paths: list[Path | str]) -> list[str]:
+    """Names for runs in messages and records: ``experiment/method/timestamp`` (the folders ``ns-train`` writes
+    above config.yml), longer trailing paths where those are not distinct, the paths as given as a last resort."""
+    parts = [PurePath(p).parts for p in config_paths]
+    parts = [q[:-1] if len(q) > 1 and q[-1] in ("config.yml", "config.yaml") else q for q in parts]
+    longest = max((len(q) for q in parts), default=1)
+    for k in range(min(3, longest), longest + 1):
+        names = ["/".join(q[-k:]) for q in parts]
+        if len(set(names)) == len(names):
+            return names
+    return [str(p) for p in config_paths]
+
+
 class UnsafeConfigError(RunLoadError):
     """A config.yml names Python objects a nerfstudio config never holds (it could run code when loaded)."""
 

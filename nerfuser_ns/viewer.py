@@ -156,12 +156,9 @@ def read_render_folder(folder: Path, nerf_to_common: np.ndarray) -> CameraSet:
 
 
 def short_name(name: str) -> str:
-    """A NeRF's name as labelled in the viewer: a run path (registrations name runs by their config.yml) becomes
-    ``experiment/method/timestamp``."""
-    parts = Path(name).parts
-    if len(parts) > 1 and parts[-1] in ("config.yml", "config.yaml"):
-        parts = parts[:-1]
-    return "/".join(parts[-3:]) if len(parts) > 3 else name
+    """A NeRF's name as labelled in the viewer: a run path (older registrations name runs by their config.yml)
+    becomes ``experiment/method/timestamp`` (:func:`runs.run_names`)."""
+    return runs.run_names([name])[0]
 
 
 def _same_file(a: Path, b: Path) -> bool:

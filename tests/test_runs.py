@@ -333,3 +333,14 @@ def test_every_kind_of_real_config_still_loads(tmp_path):
         loaded = runs.read_config(run_dir / "config.yml")
         assert type(loaded) is type(config) and loaded.method_name == config.method_name
         assert type(loaded.pipeline.model) is type(config.pipeline.model)
+
+
+def test_run_names_are_the_folders_that_tell_runs_apart():
+    a, b = "/home/me/out/part_a/nerfacto/2026-11-27_101500/config.yml", "/home/me/out/part_b/nerfacto/2026-11-27_101500"
+    assert runs.run_names([a, b]) == ["part_a/nerfacto/2026-11-27_101500", "part_b/nerfacto/2026-11-27_101500"]
+    # the same experiment/method/timestamp under two output folders: one folder more
+    c = "/data/copy/part_a/nerfacto/2026-11-27_101500/config.yml"
+    assert runs.run_names([a, c]) == ["out/part_a/nerfacto/2026-11-27_101500", "copy/part_a/nerfacto/2026-11-27_101500"]
+    assert runs.run_names(["a/config.yml", "b/config.yml"]) == ["a", "b"]
+    assert runs.run_names([a, a]) == [a, a]  # never distinct: the paths as given
+    assert runs.run_names([]) == []

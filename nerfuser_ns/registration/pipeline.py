@@ -73,7 +73,7 @@ from nerfuser_ns.registration.self_check import (
 )
 from nerfuser_ns.registration.sfm import check_registered_views, run_sfm
 from nerfuser_ns.renderers import NerfstudioRenderer, Renderer
-from nerfuser_ns.runs import default_device
+from nerfuser_ns.runs import default_device, run_names
 
 
 @dataclass
@@ -415,9 +415,10 @@ def register_runs(
         raise RegistrationError(f"{len(names)} names for {len(config_paths)} runs")
     if data_overrides is not None and len(data_overrides) != len(config_paths):
         raise RegistrationError(f"{len(data_overrides)} dataset folders for {len(config_paths)} runs")
+    labels = list(names) if names is not None else run_names(list(config_paths))
     renderers = [
         NerfstudioRenderer(
-            c, device=device, name=None if names is None else names[i],
+            c, device=device, name=labels[i],
             data_override=None if data_overrides is None else data_overrides[i],
         )
         for i, c in enumerate(config_paths)

@@ -32,7 +32,7 @@ from nerfuser_ns.registration import (
     write_registration,
 )
 from nerfuser_ns.renderers import NerfstudioRenderer
-from nerfuser_ns.runs import RunLoadError, check_dataset_folder, check_device, default_device
+from nerfuser_ns.runs import RunLoadError, check_dataset_folder, check_device, default_device, run_names
 
 CONSOLE = Console(width=120)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -68,9 +68,10 @@ class RegisterCommand(RegistrationConfig):
                 )
             for folder in self.data:
                 check_dataset_folder(folder)
+            names = run_names(list(self.configs))
             renderers = [
                 NerfstudioRenderer(c, device=self.device, eval_num_rays_per_chunk=self.eval_num_rays_per_chunk,
-                                   data_override=self.data[i] if self.data else None)
+                                   data_override=self.data[i] if self.data else None, name=names[i])
                 for i, c in enumerate(self.configs)
             ]  # fmt: skip
         work_dir = self.work_dir or work_dir_for(self.output)

@@ -14,7 +14,7 @@ import copy
 import json
 import shutil
 import sys
-from pathlib import Path
+from pathlib import Path, PurePath
 from types import SimpleNamespace
 
 import numpy as np
@@ -297,6 +297,8 @@ def test_real_command_on_tiny_nerfacto_runs(tiny_runs, tmp_path, monkeypatch, ca
     if exit_info.value.code == 0:
         rec = reg.read_registration(out)
         assert len(rec["nerfs"]) == 2 and rec["nerfs"][0]["config"] == str(first)
+        # named by the folders that tell them apart (both are tiny/<method>/<timestamp>), not by whole paths
+        assert [n["name"] for n in rec["nerfs"]] == [str(PurePath(*p.parts[-5:-1])) for p in (first, second)]
         scored = ScoreCommand(out, ground_truth=root / "scene", gt_captures=["capture_a", "capture_a"]).main()
         assert scored["nerfs"][1]["ground_truth"] is not None
         assert rec["nerfs"][0]["checkpoint"] == runs.checkpoint_identity(first)  # which weights were registered
@@ -305,7 +307,10 @@ def test_real_command_on_tiny_nerfacto_runs(tiny_runs, tmp_path, monkeypatch, ca
         # the last word is known geometry's when SfM registered from no pose source
         assert any(s in err for s in ("views registered", "reconstructed nothing", "see enough", "self-check",
                                       "reliable, multi-view", "inlier 3D matches")), err
-        assert str(first) in err or str(second) in err or "reconstructed nothing" in err
+        names = runs.run_names([first, second])
+        assert names == [str(PurePath(*p.parts[-5:-1])) for p in (first, second)]
+        assert any(n in err for n in names) or "reconstructed nothing" in err
+        assert str(root) not in err, "runs are named by their distinguishing folders, not whole paths"
     # the renders are kept for a re-run (one folder per NeRF and pose source the automatic choice tried; known
     # geometry's, with depth, are folders of their own)
     assert len(list((tmp_path / "registration_work" / "renders").glob("*/poses.json"))) in (2, 4, 6, 8)
