@@ -71,14 +71,19 @@ def _test_views(pipeline, max_views: int | None) -> tuple:  # noqa: ANN001 - a n
     return dataset.cameras[torch.from_numpy(ids)], target
 
 
-def score_case(case_dir: Path, grid: list[dict], max_views: int | None, console: Console) -> dict:
-    """Every method at the run's defaults, and coverage under every grid setting, on the case's test views."""
+def score_case(case_dir: Path, grid: list[dict], max_views: int | None, console: Console, defaults: dict) -> dict:
+    """Every method at the run's defaults, and coverage under every grid setting, on the case's test views;
+    SystemExit (one line), before the sweep, where the fused run's coverage settings are not ``defaults``."""
     loaded = runs.load_run(fused_config(case_dir, None), device=runs.default_device(), with_data=True,
                            test_mode="test")
     model = loaded.pipeline.model  # type: ignore[union-attr]
     model.config.render_all_methods = True
+    settings_now = model.blend_settings
+    key = ("sigma_deg", "k", "candidates")
+    if {x: getattr(settings_now.coverage, x) for x in key} != {x: defaults[x] for x in key}:
+        raise SystemExit(f"validate_coverage: {case_dir}: its fused run overrides the coverage settings "
+                         f"({settings_now.coverage}); the choice compares against the library's, {defaults}")
     cameras, target = _test_views(loaded.pipeline, max_views)
-    defaults = model.blend_settings
     settings = [{}] + [{"coverage": CoverageParams(g["sigma_deg"], g["k"], g["candidates"])} for g in grid]
     start = time.perf_counter()
     results = evaluation.blend_sweep(model, cameras, target, settings, METHODS, f"{case_dir.name}: sweep")
@@ -90,7 +95,7 @@ def score_case(case_dir: Path, grid: list[dict], max_views: int | None, console:
     console.print(f"{case_dir.name}: {len(target)} views, {len(grid)} settings in {seconds:.0f} s; best IDW "
                   f"{best_idw:.2f} dB, coverage at the defaults {results[0]['coverage']['psnr']:.2f} dB")
     return {"case": case_dir.name, "views": len(target), "seconds": round(seconds, 1),
-            "defaults": {"gamma": defaults.gamma, "tau": defaults.tau, **asdict(defaults.coverage)},
+            "defaults": {"gamma": settings_now.gamma, "tau": settings_now.tau, **asdict(settings_now.coverage)},
             "at_defaults": results[0], "best_idw_psnr": best_idw, "best_idw_ssim": best_idw_ssim,
             "grid": rows}  # fmt: skip
 
@@ -161,8 +166,8 @@ def main(cfg: ValidateCoverage) -> None:
         raise SystemExit("validate_coverage: no cases: name fused case folders with --cases (or --earlier outputs)")
     if len(set(names)) < len(names):
         raise SystemExit(f"validate_coverage: a case is named twice among --cases and --earlier: {names}")
-    cases = [score_case(case, grid, cfg.max_views, console) for case in cfg.cases] + earlier
-    choice = choose(cases, cases[0]["defaults"])
+    cases = [score_case(case, grid, cfg.max_views, console, defaults) for case in cfg.cases] + earlier
+    choice = choose(cases, defaults)  # every case was scored against these (checked above)
     command = (f"python scripts/validate_coverage.py --cases {' '.join(map(str, cfg.cases))} --output {cfg.output} "
                f"--sigma-deg {' '.join(map(str, cfg.sigma_deg))} --k {' '.join(map(str, cfg.k))}"
                + ("" if cfg.max_views is None else f" --max-views {cfg.max_views}")

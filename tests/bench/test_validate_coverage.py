@@ -6,8 +6,11 @@ import importlib.util
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
+
+from nerfuser_ns.coverage import CoverageParams
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -70,3 +73,11 @@ def test_earlier_runs_join_the_choice_only_on_the_same_grid(script, tmp_path):
     path.write_text("{")
     with pytest.raises(SystemExit, match="not an output of this script"):
         script.earlier_cases([path], grid, DEFAULTS)
+
+
+def test_a_fused_run_with_other_coverage_settings_is_refused_before_the_sweep(script, monkeypatch, tmp_path):
+    model = SimpleNamespace(config=SimpleNamespace(), blend_settings=SimpleNamespace(coverage=CoverageParams(40.0, 4)))
+    monkeypatch.setattr(script.runs, "load_run", lambda *a, **k: SimpleNamespace(pipeline=SimpleNamespace(model=model)))
+    monkeypatch.setattr(script.evaluation, "blend_sweep", lambda *a, **k: pytest.fail("swept a refused case"))
+    with pytest.raises(SystemExit, match="overrides the coverage settings"):
+        script.score_case(tmp_path, [], None, None, DEFAULTS)
