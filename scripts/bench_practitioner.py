@@ -237,20 +237,26 @@ def stage_register(layout, case_dir: Path) -> None:
 
 
 def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
+    """``ns-train nerfuser`` + ``ns-eval`` (cached by eval.json), then ``ns-render dataset`` (cached by its time in
+    times.json, into a temporary folder renamed when complete): a stage stopped in either step resumes there."""
     if not (case_dir / "registration.json").is_file():
         return
-    eval_json = case_dir / "eval.json"
-    if eval_json.is_file():
+    fused = fused_config(case_dir, None)
+    if not (case_dir / "eval.json").is_file():
+        world_to_ref = sim3.invert_sim3(gt[0]["nerf_to_world"])
+        spec = write_fusion_spec(
+            case_dir / "fusion.json", [run_config(case_dir, c.name) for c in layout.captures],
+            registration="registration.json", test_data="test", test_to_common=world_to_ref,
+        )  # fmt: skip
+        fused = _fuse_and_eval(case_dir, spec, None)
+    if "ns-render dataset" in _times(case_dir):
         return
-    world_to_ref = sim3.invert_sim3(gt[0]["nerf_to_world"])
-    spec = write_fusion_spec(
-        case_dir / "fusion.json", [run_config(case_dir, c.name) for c in layout.captures],
-        registration="registration.json", test_data="test", test_to_common=world_to_ref,
-    )  # fmt: skip
-    fused_config = _fuse_and_eval(case_dir, spec, None)
-    renders = case_dir / "renders"
-    seconds = _run([str(BIN / "ns-render"), "dataset", "--load-config", str(fused_config), "--output-path",
-                    str(renders), "--split", "test", "--rendered-output-names", "rgb"], case_dir / "render.log")
+    renders, partial = case_dir / "renders", case_dir / "renders.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    seconds = _run([str(BIN / "ns-render"), "dataset", "--load-config", str(fused), "--output-path",
+                    str(partial), "--split", "test", "--rendered-output-names", "rgb"], case_dir / "render.log")
+    shutil.rmtree(renders, ignore_errors=True)
+    partial.rename(renders)
     _add_time(case_dir, "ns-render dataset", seconds)
 
 
