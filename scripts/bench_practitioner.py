@@ -55,7 +55,6 @@ from nerfuser_ns.bench.practitioner_cases import (
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
-from nerfuser_ns.coverage import CoverageParams
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
 from nerfuser_ns.registration.record import iter_registered_nerfs
@@ -544,23 +543,31 @@ def _content_section(records: list[dict]) -> list[str]:
 IDW_COLUMNS = ("idw_2d", "idw_3d", "idw_sample")
 
 
+def _coverage_constants(case_dir: Path) -> str:
+    """The coverage constants a case's fused run was made with (its config.yml), as the report states them."""
+    try:
+        cov = runs.read_config(fused_config(case_dir, None)).pipeline.model.coverage
+    except (runs.RunLoadError, AttributeError):
+        return f"{case_dir.name}: unknown (no fused run)"
+    return f"sigma {cov.sigma_deg:g} deg, k {cov.k}, {cov.candidates} candidate cameras per ray"
+
+
 def write_coverage_report(records: list[dict], path: Path) -> None:
     """``coverage`` (ours) against the best of the paper's IDW methods per case, PSNR and SSIM from ``ns-eval``."""
     rows = [r for r in records if r.get("blend_psnr") and r["blend_psnr"].get("coverage") is not None]
     layout_of = {r["case"]: r["spec"].rsplit(":", 1)[0] for r in rows}
-    cov = CoverageParams()
+    constants = sorted({_coverage_constants(Path(r["case_dir"])) for r in rows})
     lines = ["# Coverage-aware blending (ours) against the paper's IDW methods, on the practitioner cases", "",
              "Command: `python scripts/bench_practitioner.py " + " ".join(sys.argv[1:]) + "` (cases: COLMAP-posed "
              "captures, stock nerfacto runs, the registration `ns-nerfuser-register` makes with every default; "
              "`ns-eval` scores every blend method in one pass on the world-posed test views, with the estimated "
              "registration).", "",
-             f"Constants of `coverage`: sigma {cov.sigma_deg:g} deg, k {cov.k}, {cov.candidates} candidate cameras "
-             "per ray, and the paper's gamma / tau (5 / 1.8, the tool's defaults) for every method and layout; "
-             "appearance matching as the fused model's default had it when the case ran (off unless the case is "
-             "marked *matched*). They "
-             "were set before any measurement and not tuned: no case here, and no validation seed, was used to "
-             "choose them. `coverage` is ours; NeRF, Nearest, IDW-2D, IDW-3D and IDW-Sample are the paper's "
-             "(Table 2).", "",
+             f"Constants of `coverage` as each case's fused run recorded them: {'; '.join(constants)}; the paper's "
+             "gamma / tau (5 / 1.8, the tool's defaults) for every method and layout; appearance matching as the "
+             "fused model's default had it when the case ran (off unless the case is marked *matched*). No case "
+             "here chose them: sigma 20 deg / k 4 was set before any measurement; sigma 40 deg / k 4 was chosen on "
+             "the validation seeds street-0 and drive-0 (`validate_coverage_drive0.md`). `coverage` is ours; NeRF, "
+             "Nearest, IDW-2D, IDW-3D and IDW-Sample are the paper's (Table 2).", "",
              "| case | layout | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
              "| --- | --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
     for r in rows:
