@@ -142,6 +142,26 @@ def test_the_gpu_blocks_give_the_row_loops_scores(k, candidates, max_elements):
     torch.testing.assert_close(blocked, rows, rtol=1e-12, atol=1e-15)
 
 
+def _top_level_ops(fn) -> int:
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        fn()
+    return sum(1 for e in prof.events() if e.name.startswith("aten::") and e.cpu_parent is None)
+
+
+def test_the_gpu_blocks_issue_a_fraction_of_the_row_loops_operations():
+    """Why the blocks exist: a GPU pays per kernel, and the row loop issues ~20 operations per candidate camera. Each
+    top-level operation is at least one kernel launch on a GPU."""
+    c2w, intr = random_cameras(20, seed=12)
+    index = index_of(c2w, intr)
+    o, d, ts, pw = rays(9, seed=13)
+    params = CoverageParams(k=4, candidates=16)
+    frames = coverage._camera_frames(index, o, d)
+    terms = coverage._candidate_terms(index, frames, pw, coverage._candidates(index, frames, d, ts[:, 3], pw, params))
+    rows = _top_level_ops(lambda: coverage._sum_of_largest(coverage._qualities(terms, ts, 40.0), 4))
+    blocks = _top_level_ops(lambda: coverage._sum_of_best_blocked(terms, ts, 40.0, 4))
+    assert rows >= 16 * 15 and blocks <= rows / 8, (rows, blocks)
+
+
 # ----------------------------------------------------------------------------------------------------------------------
 # Properties
 
