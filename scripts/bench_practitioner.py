@@ -240,28 +240,29 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
     times.json, into a temporary folder renamed when complete): a stage stopped in either step resumes there."""
     if not (case_dir / "registration.json").is_file():
         return
-    fused = fused_config(case_dir, None)
     if not (case_dir / "eval.json").is_file():
         world_to_ref = sim3.invert_sim3(gt[0]["nerf_to_world"])
         spec = write_fusion_spec(
             case_dir / "fusion.json", [run_config(case_dir, c.name) for c in layout.captures],
             registration="registration.json", test_data="test", test_to_common=world_to_ref,
         )  # fmt: skip
-        fused = _fuse_and_eval(case_dir, spec, None)
+        _fuse_and_eval(case_dir, spec, None)
     if "ns-render dataset" in _times(case_dir):
         return
     renders, partial = case_dir / "renders", case_dir / "renders.partial"
     shutil.rmtree(partial, ignore_errors=True)
-    seconds = _run([str(BIN / "ns-render"), "dataset", "--load-config", str(fused), "--output-path",
-                    str(partial), "--split", "test", "--rendered-output-names", "rgb"], case_dir / "render.log")
+    seconds = _run([str(BIN / "ns-render"), "dataset", "--load-config", str(fused_config(case_dir, None)),
+                    "--output-path", str(partial), "--split", "test", "--rendered-output-names", "rgb"],
+                   case_dir / "render.log")  # fmt: skip
     shutil.rmtree(renders, ignore_errors=True)
     partial.rename(renders)
     _add_time(case_dir, "ns-render dataset", seconds)
 
 
-def _fuse_and_eval(case_dir: Path, spec: Path, matching: bool | None) -> Path:
+def _fuse_and_eval(case_dir: Path, spec: Path, matching: bool | None) -> None:
     """``ns-train nerfuser`` on the spec, every blend method scored by ``ns-eval`` in one pass; appearance matching at
-    the fused model's default (``matching`` None: the ``fuse`` stage) or forced. The fused run's config."""
+    the fused model's default (``matching`` None: the ``fuse`` stage) or forced; the run lies at
+    :func:`fused_config`."""
     label = None if matching is None else ("matched" if matching else "unmatched")
     name = "" if label is None else f"_{label}"
     options = [] if matching is None else ["--pipeline.model.appearance-matching", str(matching)]
@@ -275,7 +276,6 @@ def _fuse_and_eval(case_dir: Path, spec: Path, matching: bool | None) -> Path:
     seconds = _run([str(BIN / "ns-eval"), "--load-config", str(config), "--output-path",
                     str(case_dir / f"eval{name}.json")], case_dir / f"eval{name}.log")  # fmt: skip
     _add_time(case_dir, f"ns-eval{suffix}", seconds)
-    return config
 
 
 def stage_appearance(case_dir: Path, matching: bool) -> None:

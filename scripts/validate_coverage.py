@@ -57,6 +57,14 @@ class ValidateCoverage:
     """JSON outputs of earlier runs whose cases join the choice (their grid and defaults must be this run's)."""
 
 
+CONSTANTS = ("sigma_deg", "k", "candidates")
+"""The coverage constants a grid setting, a case's defaults and the library's defaults are compared by."""
+
+
+def _constants(setting: dict) -> tuple:
+    return tuple(setting[x] for x in CONSTANTS)
+
+
 def _grid(cfg: ValidateCoverage) -> list[dict]:
     # gamma stays the run's: the fused model's one exponent, shared with the IDW methods
     return [{"sigma_deg": s, "k": k, "candidates": max(16, k)} for s, k in itertools.product(cfg.sigma_deg, cfg.k)]
@@ -79,8 +87,7 @@ def score_case(case_dir: Path, grid: list[dict], max_views: int | None, console:
     model = loaded.pipeline.model  # type: ignore[union-attr]
     model.config.render_all_methods = True
     settings_now = model.blend_settings
-    key = ("sigma_deg", "k", "candidates")
-    if {x: getattr(settings_now.coverage, x) for x in key} != {x: defaults[x] for x in key}:
+    if _constants(asdict(settings_now.coverage)) != _constants(defaults):
         raise SystemExit(f"validate_coverage: {case_dir}: its fused run overrides the coverage settings "
                          f"({settings_now.coverage}); the choice compares against the library's, {defaults}")
     cameras, target = _test_views(loaded.pipeline, max_views)
@@ -103,7 +110,6 @@ def score_case(case_dir: Path, grid: list[dict], max_views: int | None, console:
 def earlier_cases(paths: list[Path], grid: list[dict], defaults: dict) -> list[dict]:
     """The cases scored by earlier runs (their JSON outputs), each marked with its file; SystemExit (one line) where
     a file is unreadable or scored another grid or other defaults, whose figures the choice cannot mix."""
-    key = ("sigma_deg", "k", "candidates")
     out = []
     for path in paths:
         try:
@@ -111,10 +117,10 @@ def earlier_cases(paths: list[Path], grid: list[dict], defaults: dict) -> list[d
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise SystemExit(f"validate_coverage: --earlier {path}: not an output of this script ({e})") from None
         for case in cases:
-            if [tuple(g[x] for x in key) for g in case["grid"]] != [tuple(g[x] for x in key) for g in grid]:
+            if [_constants(g) for g in case["grid"]] != [_constants(g) for g in grid]:
                 raise SystemExit(f"validate_coverage: --earlier {path}: {case['case']} was scored on another grid; "
                                  "run with the same --sigma-deg and --k")  # fmt: skip
-            if {x: case["defaults"][x] for x in key} != {x: defaults[x] for x in key}:
+            if _constants(case["defaults"]) != _constants(defaults):
                 raise SystemExit(f"validate_coverage: --earlier {path}: {case['case']} was scored against other "
                                  "defaults; score it again")  # fmt: skip
             out.append({**case, "from": str(path)})
@@ -125,12 +131,11 @@ def choose(cases: list[dict], defaults: dict) -> dict:
     """The rule of the module docstring: the grid setting with the best mean ``coverage - best IDW``."""
     grid = cases[0]["grid"]
     means = [float(np.mean([c["grid"][j]["minus_best_idw_db"] for c in cases])) for j in range(len(grid))]
-    key = ("sigma_deg", "k", "candidates")
-    at_defaults = next((j for j, g in enumerate(grid) if all(g[x] == defaults[x] for x in key)), None)
+    at_defaults = next((j for j, g in enumerate(grid) if _constants(g) == _constants(defaults)), None)
     best = int(np.argmax(means))
     if at_defaults is not None and means[best] - means[at_defaults] <= TIE_DB:
         best = at_defaults
-    return {**{x: grid[best][x] for x in key}, "mean_minus_best_idw_db": means[best],
+    return {**dict(zip(CONSTANTS, _constants(grid[best]), strict=True)), "mean_minus_best_idw_db": means[best],
             "mean_minus_best_idw_db_at_defaults": None if at_defaults is None else means[at_defaults]}  # fmt: skip
 
 
