@@ -27,7 +27,7 @@ from torch.nn import Parameter
 from nerfuser_ns.blend_settings import BlendSettings
 from nerfuser_ns.model import NerfuserModelConfig
 from nerfuser_ns.registration import RegistrationConfig
-from nerfuser_ns.runs import RunLoadError, applied_transform, stored_to_nerf, training_cameras
+from nerfuser_ns.runs import RunLoadError, applied_transform, run_views, stored_to_nerf, training_cameras
 from nerfuser_ns.sim3 import transform_poses
 from nerfuser_ns.spec import METADATA_KEY, FusionSpec, FusionSpecError, one_line, read_fusion_spec, spec_error
 
@@ -66,7 +66,10 @@ def test_parser_config(data: Path | None = None) -> NerfstudioDataParserConfig:
 def load_test_dataparser_outputs(
     spec: FusionSpec, metadata: dict, parser_config: NerfstudioDataParserConfig | None = None
 ) -> DataparserOutputs:
-    """The test images with their poses in the common frame (stored poses, mapped by ``test_to_common``)."""
+    """The test images with their poses in the common frame: the stored poses of ``test_data`` mapped by
+    ``test_to_common``, or the held-out images of the run ``test_run`` (:func:`held_out_dataparser_outputs`)."""
+    if spec.test_run is not None:
+        return held_out_dataparser_outputs(spec, metadata)
     assert spec.test_data is not None
     parser_config = copy.deepcopy(parser_config) if parser_config is not None else test_parser_config()
     parser_config.data = spec.test_data
@@ -84,6 +87,30 @@ def load_test_dataparser_outputs(
     return DataparserOutputs(
         image_filenames=parsed.image_filenames,
         cameras=cameras,
+        scene_box=fused_scene_box(spec),
+        metadata=metadata,
+        dataparser_transform=torch.eye(4)[:3],
+        dataparser_scale=1.0,
+    )
+
+
+def held_out_dataparser_outputs(spec: FusionSpec, metadata: dict) -> DataparserOutputs:
+    """The images the run ``spec.test_run`` kept out of its training (its own dataparser's eval split), with the
+    cameras that dataparser gives them in the run's NeRF frame mapped by the run's registered transform."""
+    assert spec.test_run is not None
+    entry = spec.nerfs[spec.test_run]
+    where = f"{spec.spec_path}: test_run {entry.name!r}"
+    hint = "put it back where config.yml records it, or give its images as test_data with test_to_common"
+    try:
+        views = run_views(entry.config_path, "test", missing_hint=hint)
+    except RunLoadError as e:
+        raise spec_error(None, f"{where}: {e}") from None
+    if len(views.image_filenames) == 0:
+        raise spec_error(None, f"{where}: the run held no images out of training (its dataparser's eval split is "
+                               "empty); give test images as test_data with test_to_common")  # fmt: skip
+    return DataparserOutputs(
+        image_filenames=views.image_filenames,
+        cameras=_transform_cameras(views.cameras, entry.nerf_to_common),
         scene_box=fused_scene_box(spec),
         metadata=metadata,
         dataparser_transform=torch.eye(4)[:3],
@@ -208,7 +235,7 @@ class NerfuserDataManager(VanillaDataManager):
         self.spec = read_fusion_spec(config.data, register=config.register_if_missing,
                                      registration_config=getattr(config, "registration", None))  # fmt: skip
         metadata = {METADATA_KEY: self.spec}
-        if self.spec.test_data is not None:
+        if self.spec.has_test_images:
             self.train_dataparser_outputs = load_test_dataparser_outputs(self.spec, metadata, config.dataparser)
             self.train_dataset = InputDataset(self.train_dataparser_outputs)
             self.eval_dataset = InputDataset(self.train_dataparser_outputs)
@@ -253,10 +280,10 @@ class NerfuserDataManager(VanillaDataManager):
     def fixed_indices_eval_dataloader(self) -> FixedIndicesEvalDataloader:
         """All test images in order (``ns-eval``). A cached property: nerfstudio's viewer reads every plain attribute
         and property of the pipeline but skips cached ones, so a spec without test images still opens in it."""
-        if self.spec.test_data is None:
+        if not self.spec.has_test_images:
             raise RuntimeError(
                 f"{self.spec.spec_path or self.config.data}: the fusion spec has no test images; add 'test_data' "
-                "(a nerfstudio dataset posed in the common frame) to evaluate"
+                "(a nerfstudio dataset posed in the common frame) or 'test_run' (a run's held-out images) to evaluate"
             )
         if not hasattr(self, "_fixed_indices_eval_dataloader"):
             self.setup_eval()
@@ -272,7 +299,7 @@ class NerfuserDataManager(VanillaDataManager):
         return self.next_eval_image(step)
 
     def next_eval_image(self, step: int) -> tuple[Cameras, dict]:
-        if self.spec.test_data is None:
+        if not self.spec.has_test_images:
             raise RuntimeError("the fusion spec has no test images")
         if "eval_dataloader" not in self.__dict__:  # not hasattr: the class attribute would raise
             self.setup_eval()
@@ -310,8 +337,10 @@ class NerfuserTrainerConfig(TrainerConfig):
                 BlendSettings.from_config(self.pipeline.model)  # bad gamma / tau / NERFUSER_* values
             # The whole spec, and the registration when it is missing (minutes, announced by the registration
             # itself): a failure leaves no run folder behind.
-            read_fusion_spec(data, register=getattr(datamanager, "register_if_missing", True),
-                             registration_config=getattr(datamanager, "registration", None))  # fmt: skip
+            spec = read_fusion_spec(data, register=getattr(datamanager, "register_if_missing", True),
+                                    registration_config=getattr(datamanager, "registration", None))  # fmt: skip
+            if spec.test_run is not None:
+                held_out_dataparser_outputs(spec, {})  # its dataset must parse and hold images out
         except (FusionSpecError, ValueError) as e:
             raise SystemExit(f"nerfuser: {one_line(str(e)).removeprefix('nerfuser: ')}") from None
         data = Path(data).absolute()

@@ -359,6 +359,13 @@ def _read_transforms_json(config_path: Path, data: Path | None) -> dict:
         ) from None
 
 
+REGISTER_WITHOUT_DATASET = (
+    "pass the dataset folder (ns-nerfuser-register --data) or register without training poses "
+    "(--sampling.source hemisphere)"
+)
+"""What to do when a run's dataset is gone, where registration reads its training views."""
+
+
 def training_cameras(config_path: Path | str, data_override: Path | None = None) -> Cameras:
     """The run's training cameras in its NeRF frame, parsed from its dataset with the run's own dataparser settings.
 
@@ -371,18 +378,29 @@ def training_cameras(config_path: Path | str, data_override: Path | None = None)
 def training_views(config_path: Path | str, data_override: Path | None = None) -> DataparserOutputs:
     """The run's training split as its dataparser gives it (cameras in the NeRF frame, image file names in the same
     order, which is the order of the camera optimiser's adjustments); as :func:`training_cameras`, no image is read."""
+    return run_views(config_path, "train", data_override)
+
+
+def run_views(
+    config_path: Path | str,
+    split: Literal["train", "test"],
+    data_override: Path | None = None,
+    missing_hint: str = REGISTER_WITHOUT_DATASET,
+) -> DataparserOutputs:
+    """The run's ``train`` split, or the images it held out (``test``: its dataparser's eval split), with the run's
+    own dataparser settings: cameras in the NeRF frame, no image read. RunLoadError (one line, ending with
+    ``missing_hint`` when the dataset is gone) when the dataset is gone or cannot be parsed."""
     config_path = resolve_config_path(config_path)
     config = read_config(config_path)
     data = dataset_path(config, data_override)
     if data is None or not data.exists():
         raise RunLoadError(
-            f"{config_path}: its dataset {data} is missing; pass the dataset folder (ns-nerfuser-register --data) "
-            "or register without training poses (--sampling.source hemisphere)"
+            f"{config_path}: its dataset {data} is missing; {missing_hint}"
         )
     parser_config = copy.deepcopy(config.pipeline.datamanager.dataparser)
     parser_config.data = data
     try:
-        return parser_config.setup().get_dataparser_outputs(split="train")
+        return parser_config.setup().get_dataparser_outputs(split=split)
     except Exception as e:  # noqa: BLE001 - any parsing failure is the dataset's fault
         raise RunLoadError(f"{data}: the run's dataset cannot be parsed ({type(e).__name__}: {e})") from None
 

@@ -19,6 +19,11 @@ Fusion spec
   ``test_to_common`` (a 4x4 SIM(3) into the common frame, default identity). ``ns-eval`` scores the blended renders
   against its images. Its poses are used as stored: no re-centring, re-orientation or re-scaling (and its
   ``applied_transform`` / ``applied_scale``, which describe how the stored poses were made, are not applied again).
+* ``test_run`` (optional, instead of ``test_data``): the name (or index in ``runs``) of a run whose held-out images are
+  the test images: the images its dataparser kept out of training (nerfstudio's eval split, by default every tenth
+  image of the capture), posed as that run's NeRF saw them and mapped into the common frame by its registered
+  transform. No matrix to write: ``"test_run": "part_a"`` scores the blend on part_a's own held-out views. Needs that
+  run's dataset where its config.yml records it.
 
 Relative paths are relative to the spec file's folder. ``--data`` may also point at a registration file directly
 (then its runs are fused, without test images).
@@ -87,6 +92,12 @@ class FusionSpec:
     """Optional nerfstudio dataset of test images."""
     test_to_common: Float[np.ndarray, "4 4"] = field(default_factory=lambda: np.eye(4))
     """SIM(3) from the test dataset's frame into the common frame."""
+    test_run: int | None = None
+    """Index in ``nerfs`` of the run whose held-out images are the test images (instead of ``test_data``)."""
+
+    @property
+    def has_test_images(self) -> bool:
+        return self.test_data is not None or self.test_run is not None
 
     @property
     def transforms(self) -> Float[np.ndarray, "n 4 4"]:
@@ -306,7 +317,7 @@ def read_fusion_spec(
     if "nerfs" in data and "runs" not in data:  # --data is a registration file
         return FusionSpec(nerfs=read_registered_nerfs(path), registration_path=path, spec_path=None)
 
-    known = {"runs", "registration", "test_data", "test_to_common"}
+    known = {"runs", "registration", "test_data", "test_to_common", "test_run"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise spec_error(path, f"unknown keys {unknown}; expected some of {sorted(known)}")
@@ -338,6 +349,8 @@ def read_fusion_spec(
     test_to_common = np.eye(4)
     if data.get("test_to_common") is not None:
         test_to_common = validate_sim3(data["test_to_common"], f"{path}: test_to_common")
+    if data.get("test_run") is not None and (test_data is not None or data.get("test_to_common") is not None):
+        raise spec_error(path, "test_run names the test images itself; drop test_data / test_to_common or test_run")
 
     if registration_path.is_file():
         nerfs = read_registered_nerfs(registration_path)
@@ -361,7 +374,24 @@ def read_fusion_spec(
         spec_path=path,
         test_data=test_data,
         test_to_common=test_to_common,
+        test_run=_test_run_index(data.get("test_run"), nerfs, path),
     )
+
+
+def _test_run_index(value: Any, nerfs: list[NerfEntry], path: Path) -> int | None:
+    """``test_run`` (a run's name, or its index in ``runs``) as an index in ``nerfs``."""
+    if value is None:
+        return None
+    names = [n.name for n in nerfs]
+    if isinstance(value, bool) or not isinstance(value, (str, int)):
+        raise spec_error(path, f"test_run must be a run's name (one of {names}) or its index, not {value!r}")
+    if isinstance(value, int):
+        if not 0 <= value < len(nerfs):
+            raise spec_error(path, f"test_run {value} is not an index of the {len(nerfs)} runs {names}")
+        return value
+    if value not in names:
+        raise spec_error(path, f"test_run {value!r} names no run; the runs are {names}")
+    return names.index(value)
 
 
 def _default_names(spec_runs: list[tuple[str | None, Path]]) -> list[str]:
@@ -410,6 +440,7 @@ def write_fusion_spec(
     test_data: Path | str | None = None,
     test_to_common: np.ndarray | None = None,
     names: list[str] | None = None,
+    test_run: str | int | None = None,
 ) -> Path:
     """Writes a fusion spec JSON (paths stored as given)."""
     path = Path(path)
@@ -424,6 +455,8 @@ def write_fusion_spec(
         data["test_data"] = str(test_data)
     if test_to_common is not None:
         data["test_to_common"] = np.asarray(test_to_common, dtype=np.float64).tolist()
+    if test_run is not None:
+        data["test_run"] = test_run
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")
     return path

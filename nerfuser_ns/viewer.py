@@ -220,7 +220,7 @@ def fused_scene(model: NerfuserModel, datamanager: Any = None) -> FusedScene:
     else:
         scene.notes.append(f"registration cameras not shown: the model's NeRFs are not those of {spec.spec_path}")
     eval_dataset = getattr(datamanager, "eval_dataset", None)
-    if spec.test_data is not None and eval_dataset is not None:
+    if spec.has_test_images and eval_dataset is not None:
         c = eval_dataset.cameras
         scene.test_cameras = _camera_set(
             c.camera_to_worlds.detach().cpu().numpy(),
@@ -383,7 +383,7 @@ class NerfuserSceneControl(ViewerControl):
         hints = {
             "nerf_frames": "Each NeRF's axes at its origin, one NeRF unit long (its registered scale)",
             "registration_cameras": "The views the registration rendered (grey: left out of the SfM)",
-            "test_cameras": "The fusion spec's test views (test_data)",
+            "test_cameras": "The fusion spec's test views (test_data or test_run)",
         }
         legend = "  \n".join(
             f"{i}: **{short_name(n.name)}** ({_COLOUR_NAMES[i % len(_COLOUR_NAMES)]}, scale {n.scale:.3g})"

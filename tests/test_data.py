@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from dataset_helpers import process_data_like_dataset, run_on
 from nerfuser_ns.method_configs.nerfacto_cpu import nerfacto_cpu_config
 from nerfuser_ns.method_configs.nerfuser import nerfuser_config
 from PIL import Image
 
 from nerfuser_ns import data as fdata
-from nerfuser_ns import registration, sim3
+from nerfuser_ns import registration, runs, sampling, sim3
 from nerfuser_ns import spec as fspec
 from nerfuser_ns.spec import FusionSpecError, NerfEntry, read_fusion_spec, read_registered_nerfs
 
@@ -34,6 +35,13 @@ def fake_run(root: Path, name: str, data: Path | None = None) -> Path:
     (run_dir / "config.yml").write_text(yaml.dump(config))
     (run_dir / "nerfstudio_models" / "step-000000009.ckpt").write_bytes(b"not loaded by these tests")
     return run_dir / "config.yml"
+
+
+def with_checkpoint(config: Path) -> Path:
+    """``config`` with a checkpoint file beside it, as fake_run's (not loaded by these tests)."""
+    (config.parent / "nerfstudio_models").mkdir()
+    (config.parent / "nerfstudio_models" / "step-000000009.ckpt").write_bytes(b"not loaded by these tests")
+    return config
 
 
 def write_dataset(folder: Path, c2ws: list[np.ndarray], w: int = 8, h: int = 6) -> Path:
@@ -195,6 +203,10 @@ def _bad_cases(tmp_path: Path, a: Path, b: Path) -> list[tuple[str, dict | str, 
         ("no registration file at", {"runs": [str(a), str(b)]}, None),
         ("test_data .* is not a nerfstudio dataset", {"runs": [str(a)], "test_data": str(tmp_path)}, None),
         ("test_to_common: has non-finite values", {"runs": [str(a)], "test_to_common": nan.tolist()}, None),
+        ("test_run 'c' names no run; the runs are", {"runs": [str(a)], "test_run": "c"}, None),
+        ("test_run 3 is not an index of the 1 runs", {"runs": [str(a)], "test_run": 3}, None),
+        ("test_run must be a run's name", {"runs": [str(a)], "test_run": 1.5}, None),
+        ("drop test_data / test_to_common or test_run", {"runs": [str(a)], "test_run": 0, "test_to_common": eye}, None),
         (
             "duplicate NeRF names",
             spec,
@@ -315,6 +327,50 @@ def test_test_images_with_applied_transform_keep_their_stored_poses(tmp_path, tw
     dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
     expected = sim3.transform_poses(test_to_common, np.stack(c2ws))[:, :3, :4]
     np.testing.assert_allclose(dm.eval_dataset.cameras.camera_to_worlds.numpy(), expected, atol=1e-5)
+
+
+def test_test_run_scores_the_runs_held_out_images_in_the_common_frame(tmp_path):
+    """``test_run``: the images run b kept out of its training, posed as its NeRF saw them and moved by its registered
+    transform. The same images given the other way (test_data, with test_to_common = T_b @ data_to_nerf of b, from a
+    dataset that carries applied_transform / applied_scale) land on the same poses."""
+    eyes = np.array([[3 * np.cos(t), 3 * np.sin(t), 1.0 + 0.1 * np.sin(3 * t)] for t in np.linspace(0, 5, 20)])
+    data, _ = process_data_like_dataset(tmp_path / "data_b", sampling.look_at(eyes, np.zeros(3)), 2.5)
+    a, b = fake_run(tmp_path / "outputs", "a"), with_checkpoint(run_on(tmp_path / "outputs", data, name="b"))
+    registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
+                                                       {"config": str(b), "transform": T_B.tolist()}])  # fmt: skip
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], names=["a", "b"], test_run="b")
+    dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
+    held = dm.eval_dataset
+    train_names = {p.name for p in runs.training_views(b).image_filenames}
+    held_names = [p.name for p in held.image_filenames]
+    # nerfstudio's default split keeps 2 of 20 images out of training: those, and none of the others
+    assert len(held_names) == 2 and not set(held_names) & train_names and len(train_names) == 18
+    other = fspec.write_fusion_spec(tmp_path / "other.json", [a, b], names=["a", "b"], test_data="data_b",
+                                    test_to_common=T_B @ runs.read_dataparser_transform(b))  # fmt: skip
+    every = fdata.NerfuserDataManagerConfig(data=other).setup(device="cpu", test_mode="test").eval_dataset
+    pick = [[p.name for p in every.image_filenames].index(n) for n in held_names]
+    np.testing.assert_allclose(held.cameras.camera_to_worlds.numpy(), every.cameras.camera_to_worlds[pick].numpy(),
+                               atol=1e-5)  # fmt: skip
+    assert [c[1]["image"].shape for c in dm.fixed_indices_eval_dataloader] == [(6, 8, 3)] * 2
+
+
+def test_a_test_run_whose_dataset_is_gone_is_one_line_before_ns_train_writes(tmp_path):
+    eyes = np.array([[3 * np.cos(t), 3 * np.sin(t), 1.0] for t in np.linspace(0, 5, 20)])
+    data, _ = process_data_like_dataset(tmp_path / "data_b", sampling.look_at(eyes, np.zeros(3)), 1.0)
+    a, b = fake_run(tmp_path / "outputs", "a"), with_checkpoint(run_on(tmp_path / "outputs", data, name="b"))
+    registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
+                                                       {"config": str(b), "transform": T_B.tolist()}])  # fmt: skip
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], names=["a", "b"], test_run="b")
+    data.rename(tmp_path / "moved")
+    with pytest.raises(FusionSpecError, match=r"fusion.json: test_run 'b': .*data_b is missing; put it back") as info:
+        fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
+    assert "\n" not in str(info.value)
+    config = nerfuser_config()
+    config.data, config.output_dir = spec, tmp_path / "out"
+    config.set_timestamp()
+    with pytest.raises(SystemExit, match=r"^nerfuser: .*test_run 'b': .*is missing"):
+        config.save_config()
+    assert not (tmp_path / "out").exists()
 
 
 def test_datamanager_without_test_images(tmp_path, two_runs):

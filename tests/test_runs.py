@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from dataset_helpers import process_data_like_dataset, run_on
 
 from nerfuser_ns import runs, runtime
 from nerfuser_ns.bench.training import train
@@ -150,57 +151,14 @@ def test_runtime_installed_by_loading():
 # ----------------------------------------------------------------------------------------------------------------------
 # Frames of datasets made by ns-process-data (applied_transform / applied_scale)
 
-COLMAP_TO_STORED = np.array([[0.0, 1.0, 0.0, 0.3], [1.0, 0.0, 0.0, -0.2], [0.0, 0.0, -1.0, 0.1]])  # a rotation + shift
-
-
-def _process_data_like_dataset(folder: Path, world_c2w: np.ndarray, applied_scale: float) -> tuple[Path, np.ndarray]:
-    """A dataset as ns-process-data writes it: poses of an arbitrary "COLMAP" frame, stored after applied_transform and
-    applied_scale, both keys recorded. Returns the folder and the stored-frame -> world SIM(3)."""
-    from PIL import Image
-
-    from nerfuser_ns import sim3
-
-    world_to_colmap = sim3.make_sim3(sim3.so3_exp(np.array([0.3, -0.5, 1.1])), np.array([2.0, -1.0, 0.5]), 3.0)
-    A = np.eye(4)
-    A[:3, :4] = COLMAP_TO_STORED
-    colmap_to_stored = np.diag([applied_scale] * 3 + [1.0]) @ A
-    world_to_stored = colmap_to_stored @ world_to_colmap
-    stored = sim3.transform_poses(world_to_stored, world_c2w)
-    (folder / "images").mkdir(parents=True)
-    frames = []
-    for i, c2w in enumerate(stored):
-        Image.fromarray(np.full((6, 8, 3), 30 * i, dtype=np.uint8)).save(folder / "images" / f"frame_{i + 1:05d}.png")
-        frames.append({"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": c2w.tolist()})
-    meta = {"camera_model": "OPENCV", "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "frames": frames,
-            "applied_transform": COLMAP_TO_STORED.tolist(), "applied_scale": applied_scale}  # fmt: skip
-    (folder / "transforms.json").write_text(json.dumps(meta))
-    return folder, sim3.invert_sim3(world_to_stored)
-
-
-def _run_on(root: Path, data: Path) -> Path:
-    """A run folder (config.yml + dataparser_transforms.json as ns-train writes them) on ``data``; nothing trained."""
-    from nerfuser_ns.method_configs.nerfacto_cpu import nerfacto_cpu_config
-
-    config = nerfacto_cpu_config(10)
-    config.experiment_name, config.timestamp, config.output_dir = "x", "run", root
-    config.pipeline.datamanager.data = data
-    run_dir = root / "x" / "nerfacto-cpu" / "run"
-    run_dir.mkdir(parents=True)
-    (run_dir / "config.yml").write_text(yaml.dump(config))
-    parser = config.pipeline.datamanager.dataparser
-    parser.data = data
-    parser.setup().get_dataparser_outputs("train").save_dataparser_transform(run_dir / "dataparser_transforms.json")
-    return run_dir / "config.yml"
-
-
 @pytest.mark.parametrize("applied_scale", [1.0, 2.5])
 def test_dataset_frame_with_applied_transform_lands_where_the_ground_truth_says(tmp_path, applied_scale):
     from nerfuser_ns import sampling, sim3
 
     eyes = np.array([[np.cos(a) * 3, np.sin(a) * 3, 1.0 + 0.2 * (a % 1)] for a in np.linspace(0, 5, 9)])
     world = sampling.look_at(eyes, np.zeros(3))
-    data, stored_to_world = _process_data_like_dataset(tmp_path / "data", world, applied_scale)
-    config = _run_on(tmp_path / "outputs", data)
+    data, stored_to_world = process_data_like_dataset(tmp_path / "data", world, applied_scale)
+    config = run_on(tmp_path / "outputs", data)
     data_to_nerf = runs.read_dataparser_transform(config)
     nerf_cams = runs.training_cameras(config).camera_to_worlds.double().numpy()
     stored = np.array([f["transform_matrix"] for f in json.loads((data / "transforms.json").read_text())["frames"]])
@@ -221,8 +179,8 @@ def test_dataset_frame_needs_the_dataset(tmp_path):
     from nerfuser_ns import sampling
 
     world = sampling.look_at(np.array([[3.0, 0, 1], [0, 3.0, 1], [-3.0, 0, 1]]), np.zeros(3))
-    data, _ = _process_data_like_dataset(tmp_path / "data", world, 1.0)
-    config = _run_on(tmp_path / "outputs", data)
+    data, _ = process_data_like_dataset(tmp_path / "data", world, 1.0)
+    config = run_on(tmp_path / "outputs", data)
     moved = tmp_path / "moved"
     data.rename(moved)
     with pytest.raises(runs.RunLoadError, match="cannot read the run's dataset"):
@@ -271,8 +229,8 @@ def test_relative_dataset_path_resolves_from_another_working_directory(tmp_path,
 
     world = sampling.look_at(np.array([[3.0, 0, 1], [0, 3.0, 1], [-3.0, 0, 1]]), np.zeros(3))
     work = tmp_path / "work"
-    _process_data_like_dataset(work / "data" / "part_a", world, 1.0)
-    config_path = _run_on(work / "outputs", work / "data" / "part_a")
+    process_data_like_dataset(work / "data" / "part_a", world, 1.0)
+    config_path = run_on(work / "outputs", work / "data" / "part_a")
     config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
     config.output_dir, config.pipeline.datamanager.data = Path("outputs"), Path("data/part_a")
     config_path.write_text(yaml.dump(config))
