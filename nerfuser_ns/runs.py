@@ -394,9 +394,7 @@ def run_views(
     config = read_config(config_path)
     data = dataset_path(config, data_override)
     if data is None or not data.exists():
-        raise RunLoadError(
-            f"{config_path}: its dataset {data} is missing; {missing_hint}"
-        )
+        raise RunLoadError(f"{config_path}: its dataset {data} is missing; {missing_hint}")
     parser_config = copy.deepcopy(config.pipeline.datamanager.dataparser)
     parser_config.data = data
     try:

@@ -20,10 +20,10 @@ Fusion spec
   against its images. Its poses are used as stored: no re-centring, re-orientation or re-scaling (and its
   ``applied_transform`` / ``applied_scale``, which describe how the stored poses were made, are not applied again).
 * ``test_run`` (optional, instead of ``test_data``): the name (or index in ``runs``) of a run whose held-out images are
-  the test images: the images its dataparser kept out of training (nerfstudio's eval split, by default every tenth
-  image of the capture), posed as that run's NeRF saw them and mapped into the common frame by its registered
-  transform. No matrix to write: ``"test_run": "part_a"`` scores the blend on part_a's own held-out views. Needs that
-  run's dataset where its config.yml records it.
+  the test images: the images its dataparser kept out of training (nerfstudio's eval split, by default 10% of the
+  capture, evenly spread), posed as that run's dataparser poses them (as nerfstudio's own ``ns-eval`` of the run does)
+  and mapped into the common frame by its registered transform. No matrix to write: ``"test_run": 0`` scores the blend
+  on the first run's held-out views. Needs that run's dataset where its config.yml records it.
 
 Relative paths are relative to the spec file's folder. ``--data`` may also point at a registration file directly
 (then its runs are fused, without test images).

@@ -30,7 +30,8 @@ def process_data_like_dataset(folder: Path, world_c2w: np.ndarray, applied_scale
     (folder / "images").mkdir(parents=True)
     frames = []
     for i, c2w in enumerate(stored):
-        Image.fromarray(np.full((6, 8, 3), 30 * i % 256, dtype=np.uint8)).save(folder / "images" / f"frame_{i + 1:05d}.png")
+        image = np.full((6, 8, 3), 30 * i % 256, dtype=np.uint8)
+        Image.fromarray(image).save(folder / "images" / f"frame_{i + 1:05d}.png")
         frames.append({"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": c2w.tolist()})
     meta = {"camera_model": "OPENCV", "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "frames": frames,
             "applied_transform": COLMAP_TO_STORED.tolist(), "applied_scale": applied_scale}  # fmt: skip
