@@ -15,6 +15,8 @@ Per case (a generated scene and seed), as a user would do it:
    SIM(3) fitted to the true camera centres of the views COLMAP registered; composed with each run's dataparser
    transform (``applied_transform`` included) it gives every NeRF's true frame. r/t/s errors as the paper defines
    them, COLMAP's own pose noise beside them, the blend table from ``ns-eval``'s JSON, the time of every step.
+7. ``held-out`` (not a default): the blend scored without ground truth, as a user can: on each capture's own
+   held-out images (a fusion spec with ``test_run``), beside nerfstudio's ``ns-eval`` of that capture's run alone.
 
 Every stage is cached in ``<root>/<case>/`` (trained runs are never retrained unless deleted), so re-runs only redo
 what is missing. Thresholds and defaults are the tools' own; nothing here is tuned per case.
@@ -51,6 +53,8 @@ from nerfuser_ns.bench.practitioner_cases import (
     case_layout,
     fused_appearance_matching,
     fused_config,
+    held_out_evals,
+    held_out_fused_config,
     run_config,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
@@ -111,7 +115,8 @@ class BenchPractitioner:
     IDW-Sample and ``coverage`` passes against the sub-models on the rays they are queried on; ``content`` (not a
     default) registers each run to the ground-truth scene placed by the stored truth (:func:`stage_content`);
     ``matched`` / ``unmatched`` (not defaults) score the fused run again with appearance matching forced on / off
-    (:func:`stage_appearance`)."""
+    (:func:`stage_appearance`); ``held-out`` (not a default) scores the blend on each capture's own held-out images,
+    the way a user without ground truth would (:func:`stage_held_out`)."""
     report: Path | None = None
     """Write the markdown report here (after the stages)."""
     report_only: bool = False
@@ -285,6 +290,34 @@ def stage_appearance(case_dir: Path, matching: bool) -> None:
         _fuse_and_eval(case_dir, case_dir / "fusion.json", matching)
 
 
+def stage_held_out(layout, case_dir: Path) -> None:
+    """Each capture's own held-out images (its run's eval split: nerfstudio's default keeps 10% out) as the test
+    views, the way a user scores a fused run without ground truth: a fusion spec with ``test_run``, ``ns-train
+    nerfuser`` and ``ns-eval`` (every blend method), and nerfstudio's own ``ns-eval`` of that capture's run on the same
+    images (its NeRF alone, no registration involved)."""
+    if not (case_dir / "registration.json").is_file():
+        return
+    configs = [run_config(case_dir, c.name) for c in layout.captures]
+    for i, cap in enumerate(layout.captures):
+        fused_json, own_json = held_out_evals(case_dir, cap.name)
+        if not fused_json.is_file():
+            spec = write_fusion_spec(case_dir / f"fusion_held_out_{cap.name}.json", configs,
+                                     registration="registration.json", test_run=i)  # fmt: skip
+            config = held_out_fused_config(case_dir, cap.name)
+            seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir",
+                            str(config.parents[3]), "--experiment-name", "fused", "--timestamp", cap.name,
+                            "--pipeline.model.render-all-methods", "True"],
+                           case_dir / f"fuse_held_out_{cap.name}_train.log")  # fmt: skip
+            _add_time(case_dir, f"ns-train nerfuser (held-out {cap.name})", seconds)
+            seconds = _run([str(BIN / "ns-eval"), "--load-config", str(config), "--output-path", str(fused_json)],
+                           case_dir / f"eval_held_out_{cap.name}.log")  # fmt: skip
+            _add_time(case_dir, f"ns-eval (held-out {cap.name})", seconds)
+        if not own_json.is_file():
+            seconds = _run([str(BIN / "ns-eval"), "--load-config", str(configs[i]), "--output-path", str(own_json)],
+                           case_dir / f"eval_own_{cap.name}.log")  # fmt: skip
+            _add_time(case_dir, f"ns-eval of the run (held-out {cap.name})", seconds)
+
+
 def stage_content(layout, case_dir: Path, gt: list[dict]) -> None:
     """Where each run's trained content lies against the stored truth: the run registered (every default) to the
     ground-truth scene placed in the run's NeRF frame by that truth. The SIM(3) found is the identity where the truth
@@ -381,6 +414,18 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
                     g["nerf_to_world"], sim3.invert_sim3(np.asarray(found[g["capture"]]["truth_to_content"]))
                 )
             record["registration"]["errors_content"] = _errors(read_registration(reg_path), gt, "nerf_to_world_content")
+    held_out = {}
+    for cap in layout.captures:
+        fused_json, own_json = held_out_evals(case_dir, cap.name)
+        if fused_json.is_file() and own_json.is_file():
+            fused, own = (json.loads(f.read_text())["results"] for f in (fused_json, own_json))
+            held_out[cap.name] = {
+                "views": len(runs.run_views(run_config(case_dir, cap.name), "test").image_filenames),
+                **{f"blend_{m}": {k: fused.get(f"{m}_{k}") for k, _ in BLEND_COLUMNS} for m in ("psnr", "ssim")},
+                **{f"own_{m}": own[m] for m in ("psnr", "ssim")},
+            }
+    if held_out:
+        record["held_out"] = held_out
     cost = case_dir / "cost.json"
     if cost.is_file():
         record["cost"] = {m: {k: c[k] for k in ("ratio", "ratio_used", "fused_s", "sub_used_s", "used_rays")}
@@ -455,6 +500,7 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
             mark = " *matched*" if r.get("fused_appearance_matching") else ""
             lines.append(f"| {r['case']}{mark} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
                                                           BLEND_COLUMNS) + " |")  # fmt: skip
+    lines += _held_out_section(records)
     lines += ["", "## Time of every step (s)", ""]
     for r in records:
         lines.append(f"- {r['case']} (registered with the code of {r.get('registered_at_commit')}): "
@@ -537,6 +583,27 @@ def _content_section(records: list[dict]) -> list[str]:
             lines.append(f"- {r['case']}, {_short(e['nerf'])}, the registration against the content's frames (each "
                          f"run's stored truth moved by the SIM(3) above): r_err {e['r_err_deg']:.4f} deg, t_err "
                          f"{e['t_err']:.5f}, s_err {e['s_err']:.5f}")
+    return lines
+
+
+def _held_out_section(records: list[dict]) -> list[str]:
+    """The blend on each capture's own held-out images (:func:`stage_held_out`), beside that capture's NeRF alone."""
+    rows = [r for r in records if r.get("held_out")]
+    if not rows:
+        return []
+    lines = ["", "### On each capture's own held-out images (`--stages held-out`: the spec's `test_run`)", "",
+             "What a user without ground truth can score: the images each capture's run kept out of its training "
+             "(nerfstudio's eval split), posed through the estimated registration (`\"test_run\": i` in the fusion "
+             "spec). *Own NeRF*: nerfstudio's `ns-eval` of that capture's run alone on the same images. NeRF (ref.) "
+             "is the reference run's NeRF, whatever the capture.", "",
+             "| case | capture (views) | Own NeRF | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
+             "| --- | --- | --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
+    for r in rows:
+        for cap, h in r["held_out"].items():
+            b = h["blend_psnr"]
+            lines.append(f"| {r['case']} | {cap} ({h['views']}) | {h['own_psnr']:.2f} | " + " | ".join(
+                "-" if b[k] is None else f"{b[k]:.2f}" for k, _ in BLEND_COLUMNS) + " |")  # fmt: skip
+    lines += ["", "PSNR (dB) from `ns-eval`'s JSON."]
     return lines
 
 
@@ -646,6 +713,8 @@ def main(cfg: BenchPractitioner) -> None:
                     stage_appearance(case_dir, setting)
             if "content" in cfg.stages:
                 stage_content(layout, case_dir, gt)
+            if "held-out" in cfg.stages:
+                stage_held_out(layout, case_dir)
         if not cfg.report_only and "cost" in cfg.stages:
             stage_cost(layout, case_dir)
         if gt is not None:

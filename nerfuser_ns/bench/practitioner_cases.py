@@ -47,6 +47,17 @@ def fused_config(case_dir: Path, label: str | None) -> Path:
     return case_dir / ("fused" if label is None else f"fused_{label}") / "fused" / "nerfuser" / "bench" / "config.yml"
 
 
+def held_out_evals(case_dir: Path, capture: str) -> tuple[Path, Path]:
+    """``ns-eval``'s JSON of the ``held-out`` stage on one capture's held-out images: the fused run's (every blend
+    method) and nerfstudio's own of that capture's run."""
+    return case_dir / f"eval_held_out_{capture}.json", case_dir / f"eval_own_{capture}.json"
+
+
+def held_out_fused_config(case_dir: Path, capture: str) -> Path:
+    """The fused run of the ``held-out`` stage whose spec names ``capture``'s run as ``test_run``."""
+    return case_dir / "fused_held_out" / "fused" / "nerfuser" / capture / "config.yml"
+
+
 def fused_appearance_matching(case_dir: Path) -> bool | None:
     """Whether the ``fuse`` stage's run (the fused model's defaults when it ran) had appearance matching on; None
     before that stage. Read from the run's config: an ``NERFUSER_APPEARANCE_MATCHING`` override at ``ns-eval`` time
