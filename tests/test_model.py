@@ -537,6 +537,26 @@ def test_ns_render_renders_every_method(fused_run, tmp_path):
         assert len(files) == 2, name
 
 
+def test_ns_eval_on_a_runs_held_out_images_scores_its_nerf_as_nerfstudio_does(fused_run, trained, tmp_path):
+    """``"test_run": 0``: the fused run scored on the images run a kept out of its training. Its reference NeRF
+    alone (method ``nerf``: run a, registered at the identity) must score what nerfstudio's own ns-eval of run a
+    scores on the same images; a pose off by a pixel would not."""
+    spec = write_fusion_spec(tmp_path / "fusion.json", [trained.config_path, fused_run.parents[4] / "runs" / "b" /
+                             "nerfacto-cpu" / "run" / "config.yml"], registration=fused_run.parents[4] /
+                             "registration.json", test_run=0)  # fmt: skip
+    _run([str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir", str(tmp_path / "outputs"),
+          "--experiment-name", "held", "--timestamp", "out", "--pipeline.model.render-all-methods", "True"],
+         cwd=tmp_path)  # fmt: skip
+    config = tmp_path / "outputs" / "held" / "nerfuser" / "out" / "config.yml"
+    _run([str(BIN / "ns-eval"), "--load-config", str(config), "--output-path", str(tmp_path / "fused.json")],
+         cwd=tmp_path)  # fmt: skip
+    _run([str(BIN / "ns-eval"), "--load-config", str(trained.config_path), "--output-path", str(tmp_path / "own.json")],
+         cwd=tmp_path)  # fmt: skip
+    fused, own = (json.loads((tmp_path / f).read_text())["results"] for f in ("fused.json", "own.json"))
+    assert own["psnr"] > 12
+    assert fused["psnr_nerf"] == pytest.approx(own["psnr"], abs=0.05)
+
+
 def test_a_run_whose_samples_cannot_be_merged_is_named(trained):
     """A method without a NeRF adapter (e.g. an instant-ngp run beside a nerfacto one): one error naming the run."""
 
