@@ -329,16 +329,23 @@ def test_test_images_with_applied_transform_keep_their_stored_poses(tmp_path, tw
     np.testing.assert_allclose(dm.eval_dataset.cameras.camera_to_worlds.numpy(), expected, atol=1e-5)
 
 
-def test_test_run_scores_the_runs_held_out_images_in_the_common_frame(tmp_path):
-    """``test_run``: the images run b kept out of its training, posed as its NeRF saw them and moved by its registered
-    transform. The same images given the other way (test_data, with test_to_common = T_b @ data_to_nerf of b, from a
-    dataset that carries applied_transform / applied_scale) land on the same poses."""
+def spec_with_test_run(tmp_path: Path) -> tuple[Path, Path, Path, Path]:
+    """A spec fusing run a (no dataset) and run b (20 views of a dataset as ns-process-data writes it, registered
+    under T_B) whose test images are b's held-out ones; returns the spec, b's dataset and the two configs."""
     eyes = np.array([[3 * np.cos(t), 3 * np.sin(t), 1.0 + 0.1 * np.sin(3 * t)] for t in np.linspace(0, 5, 20)])
     data, _ = process_data_like_dataset(tmp_path / "data_b", sampling.look_at(eyes, np.zeros(3)), 2.5)
     a, b = fake_run(tmp_path / "outputs", "a"), with_checkpoint(run_on(tmp_path / "outputs", data, name="b"))
     registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
                                                        {"config": str(b), "transform": T_B.tolist()}])  # fmt: skip
     spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], names=["a", "b"], test_run="b")
+    return spec, data, a, b
+
+
+def test_test_run_scores_the_runs_held_out_images_in_the_common_frame(tmp_path):
+    """``test_run``: the images run b kept out of its training, posed as its NeRF saw them and moved by its registered
+    transform. The same images given the other way (test_data, with test_to_common = T_b @ data_to_nerf of b, from a
+    dataset that carries applied_transform / applied_scale) land on the same poses."""
+    spec, data, a, b = spec_with_test_run(tmp_path)
     dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
     held = dm.eval_dataset
     train_names = {p.name for p in runs.training_views(b).image_filenames}
@@ -355,12 +362,7 @@ def test_test_run_scores_the_runs_held_out_images_in_the_common_frame(tmp_path):
 
 
 def test_a_test_run_whose_dataset_is_gone_is_one_line_before_ns_train_writes(tmp_path):
-    eyes = np.array([[3 * np.cos(t), 3 * np.sin(t), 1.0] for t in np.linspace(0, 5, 20)])
-    data, _ = process_data_like_dataset(tmp_path / "data_b", sampling.look_at(eyes, np.zeros(3)), 1.0)
-    a, b = fake_run(tmp_path / "outputs", "a"), with_checkpoint(run_on(tmp_path / "outputs", data, name="b"))
-    registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
-                                                       {"config": str(b), "transform": T_B.tolist()}])  # fmt: skip
-    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], names=["a", "b"], test_run="b")
+    spec, data, _, _ = spec_with_test_run(tmp_path)
     data.rename(tmp_path / "moved")
     with pytest.raises(FusionSpecError, match=r"fusion.json: test_run 'b': .*data_b is missing; put it back") as info:
         fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
