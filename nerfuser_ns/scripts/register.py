@@ -91,6 +91,9 @@ class RegisterCommand(RegistrationConfig):
             CONSOLE.print(f"[bold yellow]warning: implausible scale to the reference for {', '.join(odd)} (outside "
                           "1e-3..1e3): check that these runs show the same place[/]")  # fmt: skip
         CONSOLE.print(f"[bold green]wrote[/] {self.output}")
+        CONSOLE.print(f"next: ns-train nerfuser --data {self.output} (then ns-viewer); to score the blend with "
+                      "ns-eval, a fusion.json naming the runs, this file as \"registration\" and \"test_run\": 0 "
+                      "(the first run's held-out images)", soft_wrap=True, highlight=False, markup=False)  # fmt: skip
         return record
 
     def _check_outputs(self, work_dir: Path, renderers) -> None:

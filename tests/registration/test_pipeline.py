@@ -97,6 +97,7 @@ def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderer
     np.testing.assert_array_equal(rec["nerfs"][1]["transform"], rec["nerfs"][1]["T_to_reference"])  # fusion reader
     assert "ground_truth" not in rec and "ground_truth" not in rec["nerfs"][1]  # registration never sees the truth
     assert "capture_b" in printed and "passed" in printed
+    assert f"next: ns-train nerfuser --data {out} (then ns-viewer)" in printed  # what to run with the file
     # the kit scores the file afterwards, into a copy
     console = Console(record=True, width=200)
     scored = ScoreCommand(out, gt_transforms=gt).main(console)
