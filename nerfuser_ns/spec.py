@@ -60,6 +60,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from nerfuser_ns import registration
+from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig
 from nerfuser_ns.registration.record import NerfEntry, RegistrationFileError, iter_registered_nerfs
 from nerfuser_ns.runs import RunLoadError, checkpoint_identity, default_device, read_config, resolve_config_path
@@ -442,7 +443,7 @@ def write_fusion_spec(
     names: list[str] | None = None,
     test_run: str | int | None = None,
 ) -> Path:
-    """Writes a fusion spec JSON (paths stored as given)."""
+    """Writes a fusion spec JSON (paths stored as given), atomically."""
     path = Path(path)
     if names is not None:
         runs_value: list[Any] = [{"name": n, "config": str(r)} for n, r in zip(names, runs, strict=True)]
@@ -458,5 +459,4 @@ def write_fusion_spec(
     if test_run is not None:
         data["test_run"] = test_run
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=2) + "\n")
-    return path
+    return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
