@@ -65,6 +65,19 @@ def registration_file(path: Path, entries: list[dict]) -> Path:
     return path
 
 
+def refused_before_writing(spec: Path, out: Path, pattern: str, **model_settings) -> None:
+    """ns-train nerfuser's trainer config (with ``model_settings``) refuses ``spec`` with a SystemExit matching
+    ``pattern`` before writing anything under ``out``."""
+    config = nerfuser_config()
+    config.data, config.output_dir = spec, out
+    for key, value in model_settings.items():
+        setattr(config.pipeline.model, key, value)
+    config.set_timestamp()
+    with pytest.raises(SystemExit, match=pattern):
+        config.save_config()
+    assert not out.exists()
+
+
 def snapshot(root: Path) -> set[str]:
     return {str(p.relative_to(root)) for p in root.rglob("*")}
 
@@ -249,12 +262,7 @@ def test_ns_train_with_a_bad_spec_writes_no_run(tmp_path, two_runs):
     (tmp_path / "reg.json").write_text(json.dumps(reg))
     spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], registration="reg.json")
     # the trainer config refuses before writing config.yml
-    config = nerfuser_config()
-    config.data, config.output_dir = spec, tmp_path / "out"
-    config.set_timestamp()
-    with pytest.raises(SystemExit, match=r"^nerfuser: .*reg\.json: nerfs\[1\]\.transform: expected a 4x4"):
-        config.save_config()
-    assert not (tmp_path / "out").exists()
+    refused_before_writing(spec, tmp_path / "out", r"^nerfuser: .*reg\.json: nerfs\[1\]\.transform: expected a 4x4")
     # and so does the real command
     proc = subprocess.run(
         [
@@ -367,12 +375,7 @@ def test_a_test_run_whose_dataset_is_gone_is_one_line_before_ns_train_writes(tmp
     with pytest.raises(FusionSpecError, match=r"fusion.json: test_run 'b': .*data_b is missing; put it back") as info:
         fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
     assert "\n" not in str(info.value)
-    config = nerfuser_config()
-    config.data, config.output_dir = spec, tmp_path / "out"
-    config.set_timestamp()
-    with pytest.raises(SystemExit, match=r"^nerfuser: .*test_run 'b': .*is missing"):
-        config.save_config()
-    assert not (tmp_path / "out").exists()
+    refused_before_writing(spec, tmp_path / "out", r"^nerfuser: .*test_run 'b': .*is missing")
 
 
 def test_datamanager_without_test_images(tmp_path, two_runs):
@@ -478,14 +481,7 @@ def test_ns_train_with_bad_blend_settings_writes_no_run(tmp_path, two_runs, monk
     spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b])
     for key, value in env.items():
         monkeypatch.setenv(key, value)
-    config = nerfuser_config()
-    config.data, config.output_dir = spec, tmp_path / "out"
-    for key, value in settings.items():
-        setattr(config.pipeline.model, key, value)
-    config.set_timestamp()
-    with pytest.raises(SystemExit, match=r"^nerfuser: " + message.replace("(", r"\(")):
-        config.save_config()
-    assert not (tmp_path / "out").exists()
+    refused_before_writing(spec, tmp_path / "out", r"^nerfuser: " + message.replace("(", r"\("), **settings)
 
 
 def test_a_failed_automatic_registration_leaves_no_run(tmp_path, two_runs, monkeypatch):
@@ -496,12 +492,7 @@ def test_a_failed_automatic_registration_leaves_no_run(tmp_path, two_runs, monke
 
     monkeypatch.setattr(fspec, "run_registration", fail)
     spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b])
-    config = nerfuser_config()
-    config.data, config.output_dir = spec, tmp_path / "out"
-    config.set_timestamp()
-    with pytest.raises(SystemExit, match="^nerfuser: registration.json: automatic registration failed"):
-        config.save_config()
-    assert not (tmp_path / "out").exists()
+    refused_before_writing(spec, tmp_path / "out", "^nerfuser: registration.json: automatic registration failed")
 
 
 def test_the_automatic_registration_says_what_it_runs_before_it_starts(tmp_path, two_runs, monkeypatch, capsys):
