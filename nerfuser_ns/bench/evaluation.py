@@ -332,6 +332,11 @@ class RenderCost:
     """Median over repeats of ``fused / sum(sub_used)``: the fused model's overhead over the sub-model work it does
     (``ratio`` credits it with skipping the NeRFs the distance test leaves out)."""
     ratio_used_quartiles: tuple[float, float]
+    fused_min_s: float
+    """Seconds of the fastest fused pass: the repeat least disturbed by other work on a shared machine (a median of a
+    few repeats of passes this short can swing by several times under load)."""
+    sub_used_min_s: list[float]
+    """Seconds of each sub-model's fastest pass over the rays the fused model queries it on (0 for none)."""
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -403,6 +408,7 @@ def measure_render_cost(
         ratio_quartiles=quartiles(ratios), fused_peak_mib=peaks[0], sub_peak_mib=peaks[1:], method=method,
         repeats=repeats, used_rays=[int(u.sum()) for u in used], sub_used_s=med[n + 1 :],
         ratio_used=statistics.median(ratios_used), ratio_used_quartiles=quartiles(ratios_used),
+        fused_min_s=min(fused_t), sub_used_min_s=[min(t) for t in used_t],
     )  # fmt: skip
 
 

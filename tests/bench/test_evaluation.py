@@ -149,9 +149,13 @@ def test_measure_render_cost(tiny, models):
     assert cost.ratio == pytest.approx(cost.fused_s / sum(cost.sub_s), rel=1.0)
     # Every ray is rendered by one NeRF at least. In this scene the distance test gives each ray to one NeRF alone
     # (139 + 117 of 256 seen), so the fused pass may cost less than a sub-model's full pass; what it cannot undercut
-    # is a sub-model's pass on the rays the fused model queries it on.
+    # is a sub-model's pass on the rays the fused model queries it on. Compared on each pass's fastest repeat: with
+    # another test process on the same cores, medians of 5 passes of ~10 ms swung 3x apart (fused 0.05 s, one
+    # sub-model 0.14 s).
     assert len(cost.used_rays) == 2 and sum(cost.used_rays) >= cost.num_rays
-    assert cost.fused_s > max(cost.sub_used_s)
+    assert cost.fused_min_s > max(cost.sub_used_min_s)
+    assert cost.fused_min_s <= cost.fused_s
+    assert all(m <= t for m, t in zip(cost.sub_used_min_s, cost.sub_used_s, strict=True))
     assert cost.fused_peak_mib >= 0 and set(cost.as_dict()) >= {"ratio", "fused_s", "sub_s", "fused_peak_mib"}
 
 
