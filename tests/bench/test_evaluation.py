@@ -144,9 +144,10 @@ def test_measure_render_cost(tiny, models):
     assert cost.fused_s > 0 and all(t > 0 for t in cost.sub_s)
     q1, q3 = cost.ratio_quartiles
     assert 0 < q1 <= cost.ratio <= q3  # the median per-repeat ratio lies within its quartiles
-    # Paired per repeat, the median ratio stays near the ratio of the median times (not equal: other pairing; on a
-    # loaded machine single repeats swing by 2x, hence 5 repeats and a loose bound).
-    assert cost.ratio == pytest.approx(cost.fused_s / sum(cost.sub_s), rel=1.0)
+    u1, u3 = cost.ratio_used_quartiles
+    assert 0 < u1 <= cost.ratio_used <= u3
+    # No bound ties the paired ratio to the ratio of the median times: with another test process on the cores, 5
+    # repeats gave 1.31 against 0.35 (CI), so only properties that hold by construction are checked here.
     # Every ray is rendered by one NeRF at least. In this scene the distance test gives each ray to one NeRF alone
     # (139 + 117 of 256 seen), so the fused pass may cost less than a sub-model's full pass; what it cannot undercut
     # is a sub-model's pass on the rays the fused model queries it on. Compared on each pass's fastest repeat: with
