@@ -130,6 +130,10 @@ class BenchPractitioner:
     appearance_bracket: bool = False
     """With ``appearance_jitter``: spread the captures over its range (the largest differences it allows) instead of
     drawing them."""
+    camera_optimizer: Literal["default", "off"] = "default"
+    """default: nerfacto's camera optimiser as ``ns-train`` sets it (on); off: trained with
+    ``--pipeline.model.camera-optimizer.mode off``, so each NeRF's frame is exactly its stored COLMAP frame (a
+    diagnostic of the truth, not a user default). Case folders get the suffix ``-camopt-off``."""
 
 
 def _run(cmd: list[str], log: Path, cwd: Path | None = None) -> float:
@@ -151,10 +155,12 @@ def _layout(case: str, cfg: BenchPractitioner):
 
 
 def case_folder(case: str, cfg: BenchPractitioner) -> str:
-    """A case's folder name: ``layout-seed``, with the appearance differences it was rendered with."""
-    if cfg.appearance_jitter <= 0:
-        return case.replace(":", "-")
-    return case.replace(":", "-") + f"-{'bracket' if cfg.appearance_bracket else 'jitter'}{cfg.appearance_jitter:g}"
+    """A case's folder name: ``layout-seed``, with the appearance differences it was rendered with and the camera
+    optimiser's setting when it is not nerfacto's default."""
+    name = case.replace(":", "-")
+    if cfg.appearance_jitter > 0:
+        name += f"-{'bracket' if cfg.appearance_bracket else 'jitter'}{cfg.appearance_jitter:g}"
+    return name + ("-camopt-off" if cfg.camera_optimizer == "off" else "")
 
 
 def _times(case_dir: Path) -> dict:
@@ -216,6 +222,8 @@ def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
                "--output-dir", str(case_dir / "runs"), "--experiment-name", cap.name, "--timestamp", "bench",
                "--max-num-iterations", str(cfg.max_num_iterations), "--steps-per-save", str(cfg.max_num_iterations),
                *(TRAIN_OPTIONS if cfg.train_preset == "cpu" else STOCK_OPTIONS)]  # fmt: skip
+        if cfg.camera_optimizer == "off":
+            cmd += ["--pipeline.model.camera-optimizer.mode", "off"]
         seconds = _run(cmd, case_dir / f"train_{cap.name}.log")
         _add_time(case_dir, f"train {cap.name}", seconds)
 
@@ -447,6 +455,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
                 if cfg.train_preset == "cpu" else
                 f"{cfg.max_num_iterations} steps on a GPU with every other option at nerfacto's default "
                 f"({' '.join(STOCK_OPTIONS)})")  # fmt: skip
+    if cfg.camera_optimizer == "off":
+        training += " and the camera optimiser off (`--pipeline.model.camera-optimizer.mode off`: a diagnostic)"
     where = "a 2-core CPU" if cfg.train_preset == "cpu" else "one H100 GPU with 16 CPU cores"
     lines = ["# The practitioner's path: images in, registration and blend out (defaults only)", "",
              "Command: `python scripts/bench_practitioner.py --cases " + " ".join(r["spec"] for r in records)
