@@ -163,6 +163,22 @@ def case_folder(case: str, cfg: BenchPractitioner) -> str:
     return name + ("-camopt-off" if cfg.camera_optimizer == "off" else "")
 
 
+def case_options(cfg: BenchPractitioner) -> list[str]:
+    """The command-line options that shape a case beyond ``--cases`` (its images and its training), as given to this
+    script: a report's command must carry them to make the same case again."""
+    opts = []
+    if cfg.appearance_jitter > 0:
+        opts += ["--appearance-jitter", f"{cfg.appearance_jitter:g}"]
+        opts += ["--appearance-bracket"] if cfg.appearance_bracket else []
+    if cfg.train_preset != "cpu":
+        opts += ["--train-preset", cfg.train_preset]
+    if cfg.max_num_iterations != 2000:
+        opts += ["--max-num-iterations", str(cfg.max_num_iterations)]
+    if cfg.camera_optimizer != "default":
+        opts += ["--camera-optimizer", cfg.camera_optimizer]
+    return opts
+
+
 def _times(case_dir: Path) -> dict:
     path = case_dir / "times.json"
     return json.loads(path.read_text()) if path.is_file() else {}
@@ -459,7 +475,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         training += " and the camera optimiser off (`--pipeline.model.camera-optimizer.mode off`: a diagnostic)"
     where = "a 2-core CPU" if cfg.train_preset == "cpu" else "one H100 GPU with 16 CPU cores"
     lines = ["# The practitioner's path: images in, registration and blend out (defaults only)", "",
-             "Command: `python scripts/bench_practitioner.py --cases " + " ".join(r["spec"] for r in records)
+             "Command: `python scripts/bench_practitioner.py " + " ".join(["--cases", *(r["spec"] for r in records),
+                                                             *case_options(cfg)])
              + "` (every stage cached per case; this "
              "file collected by `python scripts/bench_practitioner.py " + " ".join(sys.argv[1:]) + "`). Times are "
              f"wall-clock on {where}, where other jobs (tests, other trainings) often ran beside: compare them "
