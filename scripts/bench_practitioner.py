@@ -50,12 +50,14 @@ from nerfuser_ns.bench.practitioner_cases import (
     BLEND_COLUMNS,
     appearance_evals,
     capture_ground_truth,
+    captures_from,
     case_layout,
     fused_appearance_matching,
     fused_config,
     held_out_evals,
     held_out_fused_config,
     run_config,
+    share_captures,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
@@ -134,6 +136,11 @@ class BenchPractitioner:
     """default: nerfacto's camera optimiser as ``ns-train`` sets it (on); off: trained with
     ``--pipeline.model.camera-optimizer.mode off``, so each NeRF's frame is exactly its stored COLMAP frame (a
     diagnostic of the truth, not a user default). Case folders get the suffix ``-camopt-off``."""
+    share_captures: bool = True
+    """Before the ``scene`` stage of a case folder with no images yet, copy the images, COLMAP datasets and test views
+    of the same case trained the other way (the other ``--camera-optimizer`` folder), when that folder has them all:
+    the pair then differs in training alone (CPU COLMAP does not pose a capture the same way twice). The report names
+    the folder copied from."""
 
 
 def _run(cmd: list[str], log: Path, cwd: Path | None = None) -> float:
@@ -161,6 +168,12 @@ def case_folder(case: str, cfg: BenchPractitioner) -> str:
     if cfg.appearance_jitter > 0:
         name += f"-{'bracket' if cfg.appearance_bracket else 'jitter'}{cfg.appearance_jitter:g}"
     return name + ("-camopt-off" if cfg.camera_optimizer == "off" else "")
+
+
+def training_siblings(case: str, cfg: BenchPractitioner) -> list[str]:
+    """The folders of the same case (same images) trained otherwise: every other camera-optimiser setting."""
+    others = [v for v in ("default", "off") if v != cfg.camera_optimizer]
+    return [case_folder(case, replace(cfg, camera_optimizer=v)) for v in others]
 
 
 def case_options(cfg: BenchPractitioner) -> list[str]:
@@ -457,6 +470,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     record["times_s"] = _times(case_dir)
     commit = case_dir / "register_commit.txt"
     record["registered_at_commit"] = commit.read_text().strip() if commit.is_file() else None
+    record["captures_from"] = captures_from(case_dir)
     return record
 
 
@@ -494,6 +508,12 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
              "of a capture's views, 0 where one SIM(3) fits the whole reconstruction). Test views: the scene's "
              "world-posed test capture, mapped into the reference "
              "NeRF's frame by the ground truth; the blend uses the estimated registration.", ""]  # fmt: skip
+    shared = [(r["case"], r["captures_from"]) for r in records if r.get("captures_from")]
+    if shared:
+        lines += ["Shared inputs: " + "; ".join(f"{c} uses the images, COLMAP datasets and test views of `{src}` "
+                                                 "(the same case trained otherwise, copied before its first stage)"
+                                                 for c, src in shared)
+                  + ", so each such pair differs in training alone.", ""]  # fmt: skip
     lines += ["## Registration (every default of `ns-nerfuser-register`)", "",
               "| case | NeRF | r_err (deg) | t_err | s_err | ok | COLMAP rot err (deg, median per capture) | "
               "COLMAP centre err (median, / capture radius) | COLMAP bend (deg) | posed / views |",
@@ -722,6 +742,12 @@ def main(cfg: BenchPractitioner) -> None:
         case_dir.mkdir(parents=True, exist_ok=True)
         if not cfg.report_only:
             CONSOLE.rule(case)
+            if "scene" in cfg.stages and cfg.share_captures:
+                source = share_captures(case_dir, [c.name for c in layout.captures],
+                                        [cfg.root.absolute() / f for f in training_siblings(case, cfg)])
+                if source is not None:
+                    CONSOLE.print(f"{case}: images, COLMAP datasets and test views copied from {source} "
+                                  "(the same case trained otherwise; --no-share-captures to make them anew)")
             if "scene" in cfg.stages:
                 stage_scene(layout, case_dir)
             if "colmap" in cfg.stages:

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
+from nerfuser_ns.files import write_text_atomic
 
 BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
                  ("idw_sample", "IDW-Sample"), ("coverage", "Coverage (ours)")]  # fmt: skip
@@ -80,6 +82,52 @@ def appearance_evals(case_dir: Path) -> dict[bool, Path]:
         if (case_dir / name).is_file():
             out[setting] = case_dir / name
     return out
+
+
+def captures_ready(case_dir: Path, captures: list[str]) -> bool:
+    """Whether a case folder holds every capture's images and COLMAP dataset and the test views (the ``scene`` and
+    ``colmap`` stages done)."""
+    return (case_dir / "test" / "transforms.json").is_file() and all(
+        (case_dir / "images" / c / ".done").is_file() and (case_dir / "datasets" / c / "transforms.json").is_file()
+        for c in captures
+    )
+
+
+def share_captures(case_dir: Path, captures: list[str], siblings: list[Path]) -> Path | None:
+    """Copy the images, COLMAP datasets and test views of the first sibling that has them all into ``case_dir``, when
+    ``case_dir`` has none yet; the sibling copied from, or None.
+
+    Siblings are folders of the same case that differ only in training (e.g. the camera optimiser): sharing their
+    inputs makes a pair that differs in training alone, since CPU COLMAP does not pose a capture the same way twice.
+    The times of the copied stages and COLMAP's logs come along; ``captures_from.txt`` names the sibling. Each folder
+    is copied under a temporary name and renamed, so an interrupted copy leaves nothing a stage would take as done."""
+    if any((case_dir / d).exists() for d in ("images", "datasets", "test")):
+        return None
+    source = next((s for s in siblings if s.resolve() != case_dir.resolve() and captures_ready(s, captures)), None)
+    if source is None:
+        return None
+    case_dir.mkdir(parents=True, exist_ok=True)
+    for name in ("images", "datasets", "test"):
+        tmp = case_dir / f".{name}.partial"
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(source / name, tmp, symlinks=True)
+        tmp.rename(case_dir / name)
+    for log in source.glob("colmap_*.log"):
+        shutil.copy2(log, case_dir / log.name)
+    times_path = source / "times.json"
+    times = json.loads(times_path.read_text()) if times_path.is_file() else {}
+    shared = {k: v for k, v in times.items() if k.startswith(("images ", "colmap "))}
+    own_path = case_dir / "times.json"
+    own = json.loads(own_path.read_text()) if own_path.is_file() else {}
+    write_text_atomic(own_path, json.dumps({**shared, **own}, indent=2) + "\n")
+    write_text_atomic(case_dir / "captures_from.txt", source.name + "\n")
+    return source
+
+
+def captures_from(case_dir: Path) -> str | None:
+    """The sibling case folder whose images and COLMAP datasets this case shares (:func:`share_captures`), if any."""
+    path = case_dir / "captures_from.txt"
+    return path.read_text().strip() if path.is_file() else None
 
 
 # --------------------------------------------------------------------------------------------------------------------

@@ -3,16 +3,21 @@ holds which appearance-matching setting."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from nerfuser_ns import sim3
 from nerfuser_ns.bench.practitioner_cases import (
     appearance_evals,
+    captures_from,
+    captures_ready,
     case_layout,
     colmap_bend_deg,
     fused_appearance_matching,
     fused_config,
+    share_captures,
     tie_to_world,
 )
 
@@ -80,3 +85,45 @@ def test_colmap_bend_is_zero_for_a_rigid_reconstruction_and_sees_a_bent_one():
                         sim3.make_sim3(np.eye(3), -true[20, :3, 3]))  # fmt: skip
     bent[20:] = sim3.transform_poses(half, true[20:])
     assert colmap_bend_deg(bent[idx], true[idx], idx, 5.0) == pytest.approx(3.0, abs=0.05)
+
+
+def _captured(case, captures, times=None):
+    for c in captures:
+        (case / "images" / c).mkdir(parents=True)
+        (case / "images" / c / "view_00000.png").write_bytes(b"png")
+        (case / "images" / c / ".done").write_text("")
+        (case / "datasets" / c).mkdir(parents=True)
+        (case / "datasets" / c / "transforms.json").write_text('{"frames": []}')
+        (case / f"colmap_{c}.log").write_text("colmap")
+    (case / "test").mkdir()
+    (case / "test" / "transforms.json").write_text("{}")
+    (case / "times.json").write_text(json.dumps(times or {}))
+
+
+def test_share_captures_copies_a_complete_sibling_once(tmp_path):
+    caps = ["capture_0", "capture_1"]
+    half, full, case = tmp_path / "street-5-half", tmp_path / "street-5-camopt-off", tmp_path / "street-5"
+    _captured(full, caps, {"images capture_0": 80.0, "colmap capture_0": 120.0, "train capture_0": 450.0})
+    _captured(half, caps)
+    (half / "datasets" / "capture_1" / "transforms.json").unlink()  # COLMAP not done there: not a source
+    assert not captures_ready(half, caps) and captures_ready(full, caps)
+    case.mkdir()
+    (case / "times.json").write_text(json.dumps({"register": 5.0}))
+    assert share_captures(case, caps, [case, half, full]) == full
+    assert captures_ready(case, caps) and captures_from(case) == "street-5-camopt-off"
+    assert (case / "colmap_capture_1.log").read_text() == "colmap"
+    # the shared stages' times come along, the training's do not, the case's own are kept
+    assert json.loads((case / "times.json").read_text()) == {
+        "images capture_0": 80.0, "colmap capture_0": 120.0, "register": 5.0}
+    assert not list(case.glob(".*.partial"))
+    # a case that has inputs of its own is never overwritten
+    (case / "datasets" / "capture_0" / "transforms.json").write_text("mine")
+    assert share_captures(case, caps, [full]) is None
+    assert (case / "datasets" / "capture_0" / "transforms.json").read_text() == "mine"
+
+
+def test_share_captures_without_a_complete_sibling_does_nothing(tmp_path):
+    case = tmp_path / "room-3"
+    case.mkdir()
+    assert share_captures(case, ["capture_a"], [tmp_path / "room-3-camopt-off"]) is None
+    assert sorted(p.name for p in case.iterdir()) == [] and captures_from(case) is None
