@@ -95,6 +95,8 @@ class NerfstudioRenderer:
         self.config_path = runs.resolve_config_path(config_path)
         config = runs.read_config(self.config_path)
         self.checkpoint_path, self.step = runs.find_checkpoint(self.config_path, config)
+        self.camera_optimizer_mode = runs.camera_optimizer_mode(config)
+        """The run's camera optimiser as trained (None: its model has none)."""
         self.name = name or str(config_path)
         self.device = device
         self.data_override = data_override

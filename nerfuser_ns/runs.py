@@ -403,6 +403,14 @@ def run_views(
         raise RunLoadError(f"{data}: the run's dataset cannot be parsed ({type(e).__name__}: {e})") from None
 
 
+def camera_optimizer_mode(config: TrainerConfig) -> str | None:
+    """The run's camera optimiser mode as trained (``"off"``, ``"SO3xR3"``, ``"SE3"``); None when its model has none
+    (e.g. instant-ngp)."""
+    optimizer = getattr(config.pipeline.model, "camera_optimizer", None)
+    mode = getattr(optimizer, "mode", None)
+    return None if mode is None else str(mode)
+
+
 def optimized_poses(model: Model, c2w: Float[Tensor, "n 3|4 4"]) -> Float[Tensor, "n 3 4"]:
     """Training poses corrected by the run's camera optimiser, as nerfstudio applies it (``apply_to_camera``: the
     correction's rotation left-multiplies the camera's, its translation adds to the centre). Unchanged when the model

@@ -291,6 +291,9 @@ def test_every_kind_of_real_config_still_loads(tmp_path):
         loaded = runs.read_config(run_dir / "config.yml")
         assert type(loaded) is type(config) and loaded.method_name == config.method_name
         assert type(loaded.pipeline.model) is type(config.pipeline.model)
+        # stock nerfacto trains with its camera optimiser on; our CPU preset with it off; some models have none
+        expected_mode = {"nerfacto": "SO3xR3", "instant-ngp": None, "nerfacto-cpu": "off", "nerfuser": None}[name]
+        assert runs.camera_optimizer_mode(loaded) == expected_mode
 
 
 def test_run_names_are_the_folders_that_tell_runs_apart():

@@ -91,6 +91,9 @@ class RegisterCommand(RegistrationConfig):
             CONSOLE.print(f"[bold yellow]warning: implausible scale to the reference for {', '.join(odd)} (outside "
                           "1e-3..1e3): check that these runs show the same place[/]")  # fmt: skip
         CONSOLE.print(f"[bold green]wrote[/] {self.output}")
+        tip = camera_optimizer_tip(renderers)
+        if tip is not None:
+            CONSOLE.print(tip, style="dim", soft_wrap=True, highlight=False, markup=False)
         CONSOLE.print(f"next: ns-train nerfuser --data {self.output} (then ns-viewer); to score the blend with "
                       "ns-eval, a fusion.json naming the runs, this file as \"registration\" and \"test_run\": 0 "
                       "(the first run's held-out images)", soft_wrap=True, highlight=False, markup=False)  # fmt: skip
@@ -116,6 +119,19 @@ class RegisterCommand(RegistrationConfig):
                 raise RegistrationError(f"{what} {path.parent}: {parent} is not a folder; pass another path")
             if not os.access(parent, os.W_OK | os.X_OK):
                 raise RegistrationError(f"{what} {path.parent}: {parent} is not writable; pass another path")
+
+
+def camera_optimizer_tip(renderers: list) -> str | None:
+    """One line for runs trained with a camera optimiser (nerfacto's default), which moves a NeRF's content off its
+    dataset's frame: where the capture's own poses are good, training without it registers more accurately. None when
+    no run has one on (or a renderer does not say)."""
+    names = [r.name for r in renderers if getattr(r, "camera_optimizer_mode", None) not in (None, "off")]
+    if not names:
+        return None
+    return (f"tip: {', '.join(short_names(names).values())} trained with a camera optimiser, which moves each NeRF "
+            "off its COLMAP frame; where COLMAP posed the captures well, runs trained with "
+            "--pipeline.model.camera-optimizer.mode off registered several times more accurately on our generated "
+            "captures (docs/your_own_captures.md, \"Training for fusion\")")  # fmt: skip
 
 
 def _fmt(x, spec: str = ".3g") -> str:

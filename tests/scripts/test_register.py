@@ -1,8 +1,10 @@
 """Tests for nerfuser_ns.scripts.register's summary (what a user reads after ns-nerfuser-register)."""
 
+from types import SimpleNamespace
+
 from rich.console import Console
 
-from nerfuser_ns.scripts.register import print_summary, short_names
+from nerfuser_ns.scripts.register import camera_optimizer_tip, print_summary, short_names
 
 A = "/home/me/outputs/part_a/nerfacto/2026-11-27_101500/config.yml"
 B = "/home/me/outputs/part_b/nerfacto/2026-11-27_101500/config.yml"
@@ -32,3 +34,14 @@ def test_the_summary_tells_the_runs_apart_in_a_narrow_terminal():
     text = console.export_text()
     assert "part_a/nerfacto/2026-11-27_1" in text and "part_b/nerfacto/2026-11-27_1" in text
     assert f"frame of {A}" in text.replace("\n", "")  # the title keeps the reference's full path
+
+
+def test_the_camera_optimiser_tip_names_the_runs_trained_with_one():
+    def run(name, mode):
+        return SimpleNamespace(name=name, camera_optimizer_mode=mode)
+
+    tip = camera_optimizer_tip([run(A, "SO3xR3"), run(B, "off"), run("/x/ngp/config.yml", None)])
+    assert tip is not None and "--pipeline.model.camera-optimizer.mode off" in tip
+    assert A in tip and B not in tip and "ngp" not in tip  # only the run that had one
+    assert camera_optimizer_tip([run(A, "off"), run(B, None)]) is None
+    assert camera_optimizer_tip([SimpleNamespace(name=A)]) is None  # a renderer that does not say (tests' fakes)
