@@ -129,9 +129,9 @@ def camera_optimizer_tip(renderers: list) -> str | None:
     if not names:
         return None
     return (f"tip: {', '.join(short_names(names).values())} trained with a camera optimiser, which moves each NeRF "
-            "off its COLMAP frame; where COLMAP posed the captures well, runs trained with "
-            "--pipeline.model.camera-optimizer.mode off registered several times more accurately on our generated "
-            "captures (docs/your_own_captures.md, \"Training for fusion\")")  # fmt: skip
+            "off its dataset's poses; where the captures are posed well (a clean COLMAP run), runs trained with "
+            "--pipeline.model.camera-optimizer.mode off registered 2-5x more accurately on our generated captures "
+            "(docs/your_own_captures.md, \"Training for fusion\")")  # fmt: skip
 
 
 def _fmt(x, spec: str = ".3g") -> str:
