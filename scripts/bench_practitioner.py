@@ -52,6 +52,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     capture_ground_truth,
     captures_from,
     case_layout,
+    case_times,
     fused_appearance_matching,
     fused_config,
     held_out_evals,
@@ -192,13 +193,8 @@ def case_options(cfg: BenchPractitioner) -> list[str]:
     return opts
 
 
-def _times(case_dir: Path) -> dict:
-    path = case_dir / "times.json"
-    return json.loads(path.read_text()) if path.is_file() else {}
-
-
 def _add_time(case_dir: Path, key: str, seconds: float) -> None:
-    times = _times(case_dir)
+    times = case_times(case_dir)
     times[key] = round(seconds, 1)
     write_text_atomic(case_dir / "times.json", json.dumps(times, indent=2) + "\n")
 
@@ -289,7 +285,7 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
             registration="registration.json", test_data="test", test_to_common=world_to_ref,
         )  # fmt: skip
         _fuse_and_eval(case_dir, spec, None)
-    if "ns-render dataset" in _times(case_dir):
+    if "ns-render dataset" in case_times(case_dir):
         return
     renders, partial = case_dir / "renders", case_dir / "renders.partial"
     shutil.rmtree(partial, ignore_errors=True)
@@ -467,7 +463,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     if cost.is_file():
         record["cost"] = {m: {k: c[k] for k in ("ratio", "ratio_used", "fused_s", "sub_used_s", "used_rays")}
                           for m, c in json.loads(cost.read_text()).items()}  # fmt: skip
-    record["times_s"] = _times(case_dir)
+    record["times_s"] = case_times(case_dir)
     commit = case_dir / "register_commit.txt"
     record["registered_at_commit"] = commit.read_text().strip() if commit.is_file() else None
     record["captures_from"] = captures_from(case_dir)
@@ -742,13 +738,13 @@ def main(cfg: BenchPractitioner) -> None:
         case_dir.mkdir(parents=True, exist_ok=True)
         if not cfg.report_only:
             CONSOLE.rule(case)
-            if "scene" in cfg.stages and cfg.share_captures:
-                source = share_captures(case_dir, [c.name for c in layout.captures],
-                                        [cfg.root.absolute() / f for f in training_siblings(case, cfg)])
+            if "scene" in cfg.stages:
+                source = None if not cfg.share_captures else share_captures(
+                    case_dir, [c.name for c in layout.captures],
+                    [cfg.root.absolute() / f for f in training_siblings(case, cfg)])  # fmt: skip
                 if source is not None:
                     CONSOLE.print(f"{case}: images, COLMAP datasets and test views copied from {source} "
                                   "(the same case trained otherwise; --no-share-captures to make them anew)")
-            if "scene" in cfg.stages:
                 stage_scene(layout, case_dir)
             if "colmap" in cfg.stages:
                 stage_colmap(layout, case_dir)

@@ -84,6 +84,12 @@ def appearance_evals(case_dir: Path) -> dict[bool, Path]:
     return out
 
 
+def case_times(case_dir: Path) -> dict[str, float]:
+    """The seconds each stage of a case took, by step (``times.json``; empty before any)."""
+    path = case_dir / "times.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
 def captures_ready(case_dir: Path, captures: list[str]) -> bool:
     """Whether a case folder holds every capture's images and COLMAP dataset and the test views (the ``scene`` and
     ``colmap`` stages done)."""
@@ -114,12 +120,8 @@ def share_captures(case_dir: Path, captures: list[str], siblings: list[Path]) ->
         tmp.rename(case_dir / name)
     for log in source.glob("colmap_*.log"):
         shutil.copy2(log, case_dir / log.name)
-    times_path = source / "times.json"
-    times = json.loads(times_path.read_text()) if times_path.is_file() else {}
-    shared = {k: v for k, v in times.items() if k.startswith(("images ", "colmap "))}
-    own_path = case_dir / "times.json"
-    own = json.loads(own_path.read_text()) if own_path.is_file() else {}
-    write_text_atomic(own_path, json.dumps({**shared, **own}, indent=2) + "\n")
+    shared = {k: v for k, v in case_times(source).items() if k.startswith(("images ", "colmap "))}
+    write_text_atomic(case_dir / "times.json", json.dumps({**shared, **case_times(case_dir)}, indent=2) + "\n")
     write_text_atomic(case_dir / "captures_from.txt", source.name + "\n")
     return source
 
