@@ -53,12 +53,15 @@ from nerfuser_ns.bench.practitioner_cases import (
     captures_from,
     case_layout,
     case_times,
+    dataset_transforms,
     fused_appearance_matching,
     fused_config,
     held_out_evals,
     held_out_fused_config,
+    images_done,
     run_config,
     share_captures,
+    test_transforms,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
@@ -201,8 +204,9 @@ def _add_time(case_dir: Path, key: str, seconds: float) -> None:
 
 def stage_scene(layout, case_dir: Path) -> None:
     for cap in layout.captures:
-        folder = case_dir / "images" / cap.name
-        if (folder / ".done").is_file():
+        done = images_done(case_dir, cap.name)
+        folder = done.parent
+        if done.is_file():
             continue
         start = time.perf_counter()
         folder.mkdir(parents=True, exist_ok=True)
@@ -210,30 +214,29 @@ def stage_scene(layout, case_dir: Path) -> None:
             out = render(layout.scene, cap.c2w_world[i], cap.intrinsics, supersample=2)
             rgb = apply_appearance(out.rgb, cap.appearance_gains)
             Image.fromarray(to_uint8(rgb)).save(folder / f"view_{i:05d}.png")
-        (folder / ".done").write_text("")
+        done.write_text("")
         _add_time(case_dir, f"images {cap.name}", time.perf_counter() - start)
     gains = [None if cap.appearance_gains is None else cap.appearance_gains.tolist() for cap in layout.captures]
     if any(g is not None for g in gains) and not (case_dir / "appearance.json").is_file():
         write_text_atomic(case_dir / "appearance.json", json.dumps(
             {"captures": [cap.name for cap in layout.captures], "gains": gains, "test": "the first capture's"},
             indent=2) + "\n")  # fmt: skip
-    test = case_dir / "test"
-    if not (test / "transforms.json").is_file():
+    if not test_transforms(case_dir).is_file():
         # scored in the reference capture's appearance: the colours a matched blend renders
         ref = layout.captures[0]
         view = replace(layout.test, exposure=ref.exposure, white_balance=ref.white_balance)
-        write_capture(layout, view, test, world_frame=True, supersample=2)
+        write_capture(layout, view, test_transforms(case_dir).parent, world_frame=True, supersample=2)
 
 
 def stage_colmap(layout, case_dir: Path) -> None:
     for cap in layout.captures:
-        out = case_dir / "datasets" / cap.name
-        if (out / "transforms.json").is_file():
+        out = dataset_transforms(case_dir, cap.name)
+        if out.is_file():
             continue
-        cmd = [str(BIN / "ns-process-data"), "images", "--data", str(case_dir / "images" / cap.name),
-               "--output-dir", str(out), "--no-gpu", "--matching-method", "exhaustive", "--num-downscales", "0"]
+        cmd = [str(BIN / "ns-process-data"), "images", "--data", str(images_done(case_dir, cap.name).parent),
+               "--output-dir", str(out.parent), "--no-gpu", "--matching-method", "exhaustive", "--num-downscales", "0"]
         seconds = _run(cmd, case_dir / f"colmap_{cap.name}.log")
-        if not (out / "transforms.json").is_file():
+        if not out.is_file():
             raise RuntimeError(f"ns-process-data wrote no transforms.json for {cap.name}: COLMAP posed nothing")
         _add_time(case_dir, f"colmap {cap.name}", seconds)
 
@@ -243,7 +246,7 @@ def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
         config = run_config(case_dir, cap.name)
         if config.is_file() and list((config.parent / "nerfstudio_models").glob("step-*.ckpt")):
             continue
-        cmd = [str(BIN / "ns-train"), "nerfacto", "--data", str(case_dir / "datasets" / cap.name),
+        cmd = [str(BIN / "ns-train"), "nerfacto", "--data", str(dataset_transforms(case_dir, cap.name).parent),
                "--output-dir", str(case_dir / "runs"), "--experiment-name", cap.name, "--timestamp", "bench",
                "--max-num-iterations", str(cfg.max_num_iterations), "--steps-per-save", str(cfg.max_num_iterations),
                *(TRAIN_OPTIONS if cfg.train_preset == "cpu" else STOCK_OPTIONS)]  # fmt: skip

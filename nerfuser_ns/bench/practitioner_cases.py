@@ -90,12 +90,26 @@ def case_times(case_dir: Path) -> dict[str, float]:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
+def images_done(case_dir: Path, capture: str) -> Path:
+    """The marker the ``scene`` stage leaves once a capture's image folder is complete."""
+    return case_dir / "images" / capture / ".done"
+
+
+def dataset_transforms(case_dir: Path, capture: str) -> Path:
+    """A capture's COLMAP dataset (``ns-process-data``'s transforms.json): the ``colmap`` stage's output."""
+    return case_dir / "datasets" / capture / "transforms.json"
+
+
+def test_transforms(case_dir: Path) -> Path:
+    """The world-posed test views (the ``scene`` stage's last output)."""
+    return case_dir / "test" / "transforms.json"
+
+
 def captures_ready(case_dir: Path, captures: list[str]) -> bool:
     """Whether a case folder holds every capture's images and COLMAP dataset and the test views (the ``scene`` and
     ``colmap`` stages done)."""
-    return (case_dir / "test" / "transforms.json").is_file() and all(
-        (case_dir / "images" / c / ".done").is_file() and (case_dir / "datasets" / c / "transforms.json").is_file()
-        for c in captures
+    return test_transforms(case_dir).is_file() and all(
+        images_done(case_dir, c).is_file() and dataset_transforms(case_dir, c).is_file() for c in captures
     )
 
 
@@ -147,7 +161,7 @@ def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list
     (:func:`_optimized_ground_truth`, which loads the run's model)."""
     out = []
     for cap in layout.captures:
-        meta = json.loads((case_dir / "datasets" / cap.name / "transforms.json").read_text())
+        meta = json.loads(dataset_transforms(case_dir, cap.name).read_text())
         idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
         stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
         true = cap.c2w_world[idx]
