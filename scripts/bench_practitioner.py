@@ -17,6 +17,8 @@ Per case (a generated scene and seed), as a user would do it:
    them, COLMAP's own pose noise beside them, the blend table from ``ns-eval``'s JSON, the time of every step.
 7. ``held-out`` (not a default): the blend scored without ground truth, as a user can: on each capture's own
    held-out images (a fusion spec with ``test_run``), beside nerfstudio's ``ns-eval`` of that capture's run alone.
+8. ``truth`` (not a default): the fused run again with the true transforms in place of the estimated ones, on the same
+   test views: what the registration's error costs the blend.
 
 Every stage is cached in ``<root>/<case>/`` (trained runs are never retrained unless deleted), so re-runs only redo
 what is missing. Thresholds and defaults are the tools' own; nothing here is tuned per case.
@@ -48,6 +50,7 @@ from nerfuser_ns import registration, runs, sim3
 from nerfuser_ns.bench import evaluation
 from nerfuser_ns.bench.practitioner_cases import (
     BLEND_COLUMNS,
+    TRUTH_BLENDS,
     appearance_evals,
     capture_ground_truth,
     captures_from,
@@ -59,9 +62,11 @@ from nerfuser_ns.bench.practitioner_cases import (
     held_out_evals,
     held_out_fused_config,
     images_done,
+    registration_with_transforms,
     run_config,
     share_captures,
     test_transforms,
+    truth_evals,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
@@ -121,7 +126,8 @@ class BenchPractitioner:
     IDW-Sample and ``coverage`` passes against the sub-models on the rays they are queried on; ``content`` (not a
     default) registers each run to the ground-truth scene placed by the stored truth (:func:`stage_content`);
     ``matched`` / ``unmatched`` (not defaults) score the fused run again with appearance matching forced on / off
-    (:func:`stage_appearance`); ``held-out`` (not a default) scores the blend on each capture's own held-out images,
+    (:func:`stage_appearance`); ``truth`` (not a default) blends with the true transforms instead of the estimated
+    ones (:func:`stage_truth`); ``held-out`` (not a default) scores the blend on each capture's own held-out images,
     the way a user without ground truth would (:func:`stage_held_out`)."""
     report: Path | None = None
     """Write the markdown report here (after the stages)."""
@@ -287,7 +293,7 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
             case_dir / "fusion.json", [run_config(case_dir, c.name) for c in layout.captures],
             registration="registration.json", test_data="test", test_to_common=world_to_ref,
         )  # fmt: skip
-        _fuse_and_eval(case_dir, spec, None)
+        _fuse_and_eval(case_dir, spec)
     if "ns-render dataset" in case_times(case_dir):
         return
     renders, partial = case_dir / "renders", case_dir / "renders.partial"
@@ -300,13 +306,10 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
     _add_time(case_dir, "ns-render dataset", seconds)
 
 
-def _fuse_and_eval(case_dir: Path, spec: Path, matching: bool | None) -> None:
-    """``ns-train nerfuser`` on the spec, every blend method scored by ``ns-eval`` in one pass; appearance matching at
-    the fused model's default (``matching`` None: the ``fuse`` stage) or forced; the run lies at
-    :func:`fused_config`."""
-    label = None if matching is None else ("matched" if matching else "unmatched")
+def _fuse_and_eval(case_dir: Path, spec: Path, label: str | None = None, options: tuple[str, ...] = ()) -> None:
+    """``ns-train nerfuser`` on the spec with ``options``, every blend method scored by ``ns-eval`` in one pass into
+    ``eval[_<label>].json``; the run lies at :func:`fused_config` (``label`` None: the ``fuse`` stage's)."""
     name = "" if label is None else f"_{label}"
-    options = [] if matching is None else ["--pipeline.model.appearance-matching", str(matching)]
     config = fused_config(case_dir, label)
     seconds = _run([str(BIN / "ns-train"), "nerfuser", "--data", str(spec), "--output-dir",
                     str(config.parents[3]), "--experiment-name", "fused", "--timestamp", "bench",
@@ -323,7 +326,8 @@ def stage_appearance(case_dir: Path, matching: bool) -> None:
     """The same fused run with appearance matching (ours) forced on (the ``matched`` stage) or off (``unmatched``),
     scored by ``ns-eval``: every blend method in one pass. Skipped when the ``fuse`` stage's run already had it."""
     if (case_dir / "fusion.json").is_file() and matching not in appearance_evals(case_dir):
-        _fuse_and_eval(case_dir, case_dir / "fusion.json", matching)
+        _fuse_and_eval(case_dir, case_dir / "fusion.json", "matched" if matching else "unmatched",
+                       ("--pipeline.model.appearance-matching", str(matching)))
 
 
 def stage_held_out(layout, case_dir: Path) -> None:
@@ -380,6 +384,44 @@ def stage_content(layout, case_dir: Path, gt: list[dict]) -> None:
     write_text_atomic(output, json.dumps(results, indent=2) + "\n")
 
 
+def content_ground_truth(case_dir: Path, gt: list[dict]) -> list[np.ndarray] | None:
+    """Each capture's content frame in the world (:func:`stage_content`): its stored truth moved by what the
+    run-to-scene registration found; None before that stage."""
+    path = case_dir / "content_truth.json"
+    found = json.loads(path.read_text()) if path.is_file() else {}
+    if not all(g["capture"] in found for g in gt):
+        return None
+    return [sim3.compose(g["nerf_to_world"], sim3.invert_sim3(np.asarray(found[g["capture"]]["truth_to_content"])))
+            for g in gt]  # fmt: skip
+
+
+def stage_truth(layout, case_dir: Path, gt: list[dict]) -> None:
+    """What the registration's error costs the blend: the fused run made again with the registration's transforms
+    replaced by a truth's (every other field of the registration, colour maps among them, as registered), scored on
+    the same test views (:data:`TRUTH_BLENDS`). Against the stored truth, the test views placed as the ``fuse`` stage
+    places them; after the ``content`` stage also against the content's frames, with the test views placed by the
+    reference run's content frame, blended with the true and with the estimated transforms."""
+    reg_path = case_dir / "registration.json"
+    if not reg_path.is_file():
+        return
+    ref = read_registration(reg_path)["reference"]["index"]
+    truths = {"stored": [g["nerf_to_world"] for g in gt], "content": content_ground_truth(case_dir, gt)}
+    for label, (placement, transforms) in TRUTH_BLENDS.items():
+        to_world = truths[placement]
+        if to_world is None or truth_evals(case_dir)[label].is_file():
+            continue
+        world_to_ref = sim3.invert_sim3(to_world[ref])
+        registration_file = "registration.json"
+        if transforms != "estimated":
+            truth = [sim3.compose(world_to_ref, T) for T in truths[transforms]]
+            registration_file = registration_with_transforms(reg_path, truth, f"registration_{label}.json").name
+        spec = write_fusion_spec(
+            case_dir / f"fusion_{label}.json", [run_config(case_dir, c.name) for c in layout.captures],
+            registration=registration_file, test_data="test", test_to_common=world_to_ref,
+        )  # fmt: skip
+        _fuse_and_eval(case_dir, spec, label)
+
+
 COST_METHODS = ("idw-sample", "coverage")
 
 
@@ -416,6 +458,14 @@ def _errors(reg: dict, gt: list[dict], truth: str) -> list[dict]:
     return errors
 
 
+def _blend_table(eval_json: Path) -> dict[str, dict]:
+    """``blend_psnr`` / ``blend_ssim`` of every blend method (:data:`BLEND_COLUMNS`) from one ``ns-eval`` JSON."""
+    results = json.loads(eval_json.read_text())["results"]
+    return {f"blend_{metric}": {k: results.get(f"{metric}_{k}", results.get(metric) if k == "idw_sample" else None)
+                                for k, _ in BLEND_COLUMNS}
+            for metric in ("psnr", "ssim")}  # fmt: skip
+
+
 def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     """The case's record for the reports; ``gt``: :func:`capture_ground_truth` of the case."""
     captures = [{k: v for k, v in g.items() if not k.startswith("nerf_to_world")} for g in gt]
@@ -432,24 +482,20 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     eval_json = case_dir / "eval.json"
     if eval_json.is_file():
         record["fused_appearance_matching"] = fused_appearance_matching(case_dir)
-        results = json.loads(eval_json.read_text())["results"]
-        for metric in ("psnr", "ssim"):
-            record[f"blend_{metric}"] = {
-                k: results.get(f"{metric}_{k}", results.get(metric) if k == "idw_sample" else None)
-                for k, _ in BLEND_COLUMNS
-            }
+        record.update(_blend_table(eval_json))
     content = case_dir / "content_truth.json"
     if content.is_file():
         found = json.loads(content.read_text())
         record["content_truth"] = {k: {m: v[m] for m in ("r_deg", "t", "s", "source", "seconds")}
                                    for k, v in found.items()}  # fmt: skip
-        if reg_path.is_file() and all(g["capture"] in found for g in gt):
-            # the content's frame in the world: the stored truth's moved by what the run-to-scene registration found
-            for g in gt:
-                g["nerf_to_world_content"] = sim3.compose(
-                    g["nerf_to_world"], sim3.invert_sim3(np.asarray(found[g["capture"]]["truth_to_content"]))
-                )
+        content_to_world = content_ground_truth(case_dir, gt)
+        if reg_path.is_file() and content_to_world is not None:
+            for g, T in zip(gt, content_to_world, strict=True):
+                g["nerf_to_world_content"] = T
             record["registration"]["errors_content"] = _errors(read_registration(reg_path), gt, "nerf_to_world_content")
+    truth_blends = {label: _blend_table(path) for label, path in truth_evals(case_dir).items() if path.is_file()}
+    if truth_blends:
+        record["truth_blends"] = truth_blends
     held_out = {}
     for cap in layout.captures:
         fused_json, own_json = held_out_evals(case_dir, cap.name)
@@ -546,6 +592,7 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
             mark = " *matched*" if r.get("fused_appearance_matching") else ""
             lines.append(f"| {r['case']}{mark} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
                                                           BLEND_COLUMNS) + " |")  # fmt: skip
+    lines += _truth_blend_section(records)
     lines += _held_out_section(records)
     lines += ["", "## Time of every step (s)", ""]
     for r in records:
@@ -630,6 +677,34 @@ def _content_section(records: list[dict]) -> list[str]:
                          f"run's stored truth moved by the SIM(3) above): r_err {e['r_err_deg']:.4f} deg, t_err "
                          f"{e['t_err']:.5f}, s_err {e['s_err']:.5f}")
     return lines
+
+
+def _truth_blend_section(records: list[dict]) -> list[str]:
+    """The blend with the estimated and with the true transforms on the same test views (:func:`stage_truth`)."""
+    rows = [r for r in records if r.get("truth_blends") and r.get("blend_psnr")]
+    if not rows:
+        return []
+    lines = ["", "### The blend with the true transforms (`--stages truth`)", "",
+             "The fused run made again with the registration's transforms replaced by a truth's (colour maps and "
+             "everything else as registered), scored by `ns-eval` on the same world-posed test views, placed in the "
+             "reference NeRF's frame by that truth: what the registration's error costs the blend. *Content*: the "
+             "runs' content frames (`--stages content`).", "",
+             "| case | test views placed by | transforms | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
+             "| --- | --- | --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
+    notes = []
+    for r in rows:
+        tables = {("stored", "estimated"): r["blend_psnr"]}
+        tables.update({TRUTH_BLENDS[label]: t["blend_psnr"] for label, t in r["truth_blends"].items()})
+        for (placement, transforms), b in tables.items():
+            lines.append(f"| {r['case']} | {placement} truth | {transforms} | " + " | ".join(
+                "-" if b[k] is None else f"{b[k]:.2f}" for k, _ in BLEND_COLUMNS) + " |")  # fmt: skip
+        for placement in ("stored", "content"):
+            est, true = tables.get((placement, "estimated")), tables.get((placement, placement))
+            if est and true:
+                d_sample, d_nearest = est["idw_sample"] - true["idw_sample"], est["nearest"] - true["nearest"]
+                notes.append(f"- {r['case']}, test views placed by the {placement} truth: estimated transforms "
+                             f"minus true ones, IDW-Sample {d_sample:+.2f} dB, Nearest {d_nearest:+.2f} dB")
+    return lines + ["", "PSNR (dB) from `ns-eval`'s JSON.", "", *notes]
 
 
 def _held_out_section(records: list[dict]) -> list[str]:
@@ -765,6 +840,8 @@ def main(cfg: BenchPractitioner) -> None:
                     stage_appearance(case_dir, setting)
             if "content" in cfg.stages:
                 stage_content(layout, case_dir, gt)
+            if "truth" in cfg.stages:
+                stage_truth(layout, case_dir, gt)
             if "held-out" in cfg.stages:
                 stage_held_out(layout, case_dir)
         if not cfg.report_only and "cost" in cfg.stages:

@@ -16,6 +16,7 @@ import numpy as np
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
 from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.registration.record import write_registration
 
 BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
                  ("idw_sample", "IDW-Sample"), ("coverage", "Coverage (ours)")]  # fmt: skip
@@ -58,6 +59,32 @@ def held_out_evals(case_dir: Path, capture: str) -> tuple[Path, Path]:
 def held_out_fused_config(case_dir: Path, capture: str) -> Path:
     """The fused run of the ``held-out`` stage whose spec names ``capture``'s run as ``test_run``."""
     return case_dir / "fused_held_out" / "fused" / "nerfuser" / capture / "config.yml"
+
+
+TRUTH_BLENDS = {
+    "truth": ("stored", "stored"),
+    "content_estimated": ("content", "estimated"),
+    "content": ("content", "content"),
+}
+"""The ``truth`` stage's fused runs: label -> (the truth that places the test views, the transforms blended). The
+``fuse`` stage's run is ("stored", "estimated")."""
+
+
+def truth_evals(case_dir: Path) -> dict[str, Path]:
+    """``ns-eval``'s JSON of each fused run of the ``truth`` stage, by label (:data:`TRUTH_BLENDS`)."""
+    return {label: case_dir / f"eval_{label}.json" for label in TRUTH_BLENDS}
+
+
+def registration_with_transforms(source: Path, transforms: list[np.ndarray], name: str) -> Path:
+    """A copy of the registration file ``source`` named ``name``, beside it (so its relative paths hold), with each
+    NeRF's transform to the reference replaced by ``transforms[i]``, both keys; every other field (colour maps,
+    training cameras, diagnostics) as registered."""
+    record = json.loads(source.read_text())
+    if len(record["nerfs"]) != len(transforms):
+        raise ValueError(f"{source}: {len(record['nerfs'])} NeRFs, {len(transforms)} transforms given")
+    for n, T in zip(record["nerfs"], transforms, strict=True):
+        n["T_to_reference"] = n["transform"] = np.asarray(T, dtype=np.float64).tolist()
+    return write_registration(record, source.with_name(name))
 
 
 def fused_appearance_matching(case_dir: Path) -> bool | None:

@@ -17,9 +17,11 @@ from nerfuser_ns.bench.practitioner_cases import (
     colmap_bend_deg,
     fused_appearance_matching,
     fused_config,
+    registration_with_transforms,
     share_captures,
     tie_to_world,
 )
+from nerfuser_ns.registration.record import KIND, iter_registered_nerfs
 
 
 def _fused(case, label, text):
@@ -127,3 +129,32 @@ def test_share_captures_without_a_complete_sibling_does_nothing(tmp_path):
     case.mkdir()
     assert share_captures(case, ["capture_a"], [tmp_path / "room-3-camopt-off"]) is None
     assert sorted(p.name for p in case.iterdir()) == [] and captures_from(case) is None
+
+
+def test_registration_with_transforms_replaces_the_transforms_alone(tmp_path):
+    """The ``truth`` stage's registration: each NeRF's transform replaced (both keys, as the fusion reads either),
+    every other field kept, written beside the source so that relative run paths still resolve."""
+    rng = np.random.default_rng(0)
+    T_est, T_true = sim3.random_sim3(rng, size=(2,))
+    nerfs = [{"name": "a", "config": "runs/a/config.yml", "T_to_reference": np.eye(4).tolist(),
+              "transform": np.eye(4).tolist(), "colour_to_reference": None},
+             {"name": "b", "config": "runs/b/config.yml", "T_to_reference": T_est.tolist(), "transform": T_est.tolist(),
+              "colour_to_reference": [[0.9, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.1, 0]]}]  # fmt: skip
+    source = tmp_path / "registration.json"
+    source.write_text(json.dumps({"kind": KIND, "reference": {"index": 0}, "nerfs": nerfs, "pairs": [{"ncc": 0.9}]}))
+    before = source.read_text()
+
+    out = registration_with_transforms(source, [np.eye(4), T_true], "registration_truth.json")
+
+    assert out == tmp_path / "registration_truth.json" and source.read_text() == before
+    written = json.loads(out.read_text())
+    for key in ("T_to_reference", "transform"):
+        np.testing.assert_allclose(written["nerfs"][1][key], T_true)
+        np.testing.assert_allclose(written["nerfs"][0][key], np.eye(4))
+    assert written["nerfs"][1]["colour_to_reference"] == nerfs[1]["colour_to_reference"]
+    assert written["pairs"] == [{"ncc": 0.9}] and written["reference"] == {"index": 0}
+    read = list(iter_registered_nerfs(out))
+    assert [n.name for n in read] == ["a", "b"]
+    with pytest.raises(ValueError, match="2 NeRFs, 1 transforms"):
+        registration_with_transforms(source, [T_true], "registration_bad.json")
+    assert not (tmp_path / "registration_bad.json").exists()
