@@ -65,6 +65,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     registration_with_transforms,
     run_config,
     share_captures,
+    summarise,
     test_transforms,
     truth_evals,
 )
@@ -563,7 +564,6 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
               "| case | NeRF | r_err (deg) | t_err | s_err | ok | COLMAP rot err (deg, median per capture) | "
               "COLMAP centre err (median, / capture radius) | COLMAP bend (deg) | posed / views |",
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
-    all_err = []
     for r in records:
         colmap = r["captures"]
         col = ", ".join(f"{c['colmap_rot_err_deg_median']:.3f}" for c in colmap)
@@ -573,12 +573,10 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         errs = r["registration"]["errors"]
         if errs is None:
             lines.append(f"| {r['case']} | - | refused | | | FAIL | {col} | {cen} | {bend} | {posed} |")
-            all_err.append(None)
             continue
         for e in errs:
             lines.append(f"| {r['case']} | {_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | "
                          f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {col} | {cen} | {bend} | {posed} |")
-            all_err.append(e)
     lines += _optimized_truth_section(records)
     lines += _content_section(records)
     lines += ["", "## Blending (PSNR from `ns-eval`'s JSON, estimated registration, world-posed test views)", "",
@@ -603,25 +601,10 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         choice = r["registration"].get("sampling_choice") or {}
         lines.append(f"- {r['case']}: {choice.get('source', '-')} ({choice.get('reason', 'no registration')}); "
                      f"tried before: {choice.get('tried_before', [])}")
-    ok = [e for e in all_err if e is not None]
-    success = sum(1 for e in ok if not e["failure"]) / max(len(all_err), 1)
-    med = (lambda k: float(np.median([e[k] for e in ok])) if ok else float("nan"))  # noqa: E731
-    lines += ["", f"{len(records)} case(s), {len(all_err)} registered NeRF(s): median r_err "
-              f"{med('r_err_deg'):.4f} deg, t_err {med('t_err'):.5f}, s_err {med('s_err'):.5f}; "
-              f"success rate {success:.2f}.", ""]  # fmt: skip
-    blends = [r["blend_psnr"] for r in records if r.get("blend_psnr")]
-    targets = [
-        ("success rate >= 0.95", success >= 0.95),
-        ("median r_err <= 0.1 deg", med("r_err_deg") <= 0.1),
-        ("median t_err <= 0.005", med("t_err") <= 0.005),
-        ("median s_err <= 0.005", med("s_err") <= 0.005),
-        ("IDW-Sample >= Nearest on every scene",
-         bool(blends) and all(b["idw_sample"] >= b["nearest"] for b in blends)),
-        (f"at least 6 cases (have {len(records)})", len(records) >= 6),
-    ]  # fmt: skip
-    lines.insert(-2, "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok_ else 'NOT met'}"
-                                                            for t, ok_ in targets) + ".")  # fmt: skip
-    lines.insert(-2, "")
+    summary = summarise(records)
+    lines += ["", "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok else 'NOT met'}"
+                                                       for t, ok in summary.targets()) + ".",
+              "", summary.line(), ""]  # fmt: skip
     write_text_atomic(path, "\n".join(lines))
     write_text_atomic(path.with_suffix(".json"), json.dumps(records, indent=2) + "\n")
 
@@ -640,19 +623,13 @@ def _optimized_truth_section(records: list[dict]) -> list[str]:
              "| case | NeRF | r_err (deg) | t_err | s_err | ok | optimised rot err (deg, median per capture) | "
              "optimised centre err (median, / capture radius) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
-    errs = []
     for r in rows:
         rot = ", ".join(f"{c['optimized_rot_err_deg_median']:.3f}" for c in r["captures"])
         cen = ", ".join(f"{c['optimized_centre_err_median']:.4f}" for c in r["captures"])
         for e in r["registration"]["errors_optimized"]:
             lines.append(f"| {r['case']} | {_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | "
                          f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {rot} | {cen} |")
-            errs.append(e)
-    med = {k: float(np.median([e[k] for e in errs])) for k in ("r_err_deg", "t_err", "s_err")}
-    success = sum(not e["failure"] for e in errs) / len(errs)
-    lines += ["", f"Against the camera-optimised truth, {len(rows)} case(s), {len(errs)} registered NeRF(s): median "
-              f"r_err {med['r_err_deg']:.4f} deg, t_err {med['t_err']:.5f}, s_err {med['s_err']:.5f}; success rate "
-              f"{success:.2f}."]  # fmt: skip
+    lines += ["", summarise(records, "errors_optimized").line("Against the camera-optimised truth, ")]
     return lines
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -171,6 +172,53 @@ def captures_from(case_dir: Path) -> str | None:
     """The sibling case folder whose images and COLMAP datasets this case shares (:func:`share_captures`), if any."""
     path = case_dir / "captures_from.txt"
     return path.read_text().strip() if path.is_file() else None
+
+
+@dataclass(frozen=True)
+class Summary:
+    """The registration and blend figures of a set of cases, as every practitioner report states them."""
+
+    cases: int
+    nerfs: int
+    """Registered NeRFs (a refused registration counts as one, a failure)."""
+    success: float
+    """Share of ``nerfs`` registered within the paper's failure rule."""
+    median: dict[str, float]
+    """Median ``r_err_deg`` / ``t_err`` / ``s_err`` over the NeRFs with errors (NaN when none)."""
+    idw_sample_over_nearest: list[bool]
+    """Per case with a blend: IDW-Sample >= Nearest."""
+
+    def line(self, prefix: str = "") -> str:
+        return (f"{prefix}{self.cases} case(s), {self.nerfs} registered NeRF(s): median r_err "
+                f"{self.median['r_err_deg']:.4f} deg, t_err {self.median['t_err']:.5f}, s_err "
+                f"{self.median['s_err']:.5f}; success rate {self.success:.2f}.")  # fmt: skip
+
+    def targets(self) -> list[tuple[str, bool]]:
+        """The practitioner benchmark's targets (defaults only) and whether they are met."""
+        blends = self.idw_sample_over_nearest
+        return [
+            ("success rate >= 0.95", self.success >= 0.95),
+            ("median r_err <= 0.1 deg", self.median["r_err_deg"] <= 0.1),
+            ("median t_err <= 0.005", self.median["t_err"] <= 0.005),
+            ("median s_err <= 0.005", self.median["s_err"] <= 0.005),
+            ("IDW-Sample >= Nearest on every scene", bool(blends) and all(blends)),
+            (f"at least 6 cases (have {self.cases})", self.cases >= 6),
+        ]
+
+
+def summarise(records: list[dict], errors: str = "errors") -> Summary:
+    """:class:`Summary` of case records (``scripts/bench_practitioner.py``'s), their registration errors under the key
+    ``errors`` (``errors_optimized``: against the camera-optimised truth; records without that key are left out)."""
+    rows = [r for r in records if errors == "errors" or r["registration"].get(errors)]
+    scored: list[dict | None] = []
+    for r in rows:
+        errs = r["registration"].get(errors)
+        scored += [None] if errs is None else errs  # None: the registration was refused
+    ok = [e for e in scored if e is not None]
+    median = {k: float(np.median([e[k] for e in ok])) if ok else float("nan") for k in ("r_err_deg", "t_err", "s_err")}
+    success = sum(not e["failure"] for e in ok) / max(len(scored), 1)
+    blends = [r["blend_psnr"]["idw_sample"] >= r["blend_psnr"]["nearest"] for r in rows if r.get("blend_psnr")]
+    return Summary(len(rows), len(scored), success, median, blends)
 
 
 # --------------------------------------------------------------------------------------------------------------------

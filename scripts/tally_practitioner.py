@@ -1,0 +1,98 @@
+"""One table of the practitioner cases from the records the benchmark wrote, with one summary line over all of them.
+
+``scripts/bench_practitioner.py --report X.md`` writes its case records beside the report (``X.json``); the cases of a
+library version are spread over several reports (fresh seeds run one at a time). This collects them::
+
+    python scripts/tally_practitioner.py --records reports/bench_practitioner_current.json \\
+        reports/bench_practitioner_oc4.json ... --report reports/bench_practitioner_tally.md
+
+Reads the JSON records only (no case folder, no model): the figures are the ones the reports state. A case found in
+several files is taken from the last one given.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+
+from nerfuser_ns.bench.practitioner_cases import summarise
+from nerfuser_ns.files import write_text_atomic
+
+
+@dataclass
+class TallyPractitioner:
+    """Every practitioner case of the given records in one table."""
+
+    records: list[Path]
+    """JSON records written by ``scripts/bench_practitioner.py --report`` (a list of case records each)."""
+    report: Path
+    """Write the markdown table here."""
+
+
+def collect(paths: list[Path]) -> list[tuple[dict, Path]]:
+    """The case records of ``paths`` with the file each came from, in first-seen order; the last file wins a case."""
+    found: dict[str, tuple[dict, Path]] = {}
+    for path in paths:
+        try:
+            records = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise SystemExit(f"{path}: not a readable practitioner record file ({e})") from None
+        if not isinstance(records, list) or not all(isinstance(r, dict) and "case" in r for r in records):
+            raise SystemExit(f"{path}: expected a list of case records (scripts/bench_practitioner.py --report)")
+        for r in records:
+            found[r["case"]] = (r, path)
+    return list(found.values())
+
+
+def _fmt(x: float | None, digits: int) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
+    lines = ["# The practitioner's path: every case in one table", "",
+             "Collected by `python scripts/tally_practitioner.py " + " ".join(sys.argv[1:]) + "` from the records "
+             "each report wrote (one row per case; r/t/s against the stored COLMAP truth, blend PSNR from `ns-eval` "
+             "on the world-posed test views with the estimated registration). COLMAP columns: the worst capture "
+             "of the case.", "",
+             "| case | r_err (deg) | t_err | s_err | ok | COLMAP rot noise (deg) | COLMAP bend (deg) | Nearest | "
+             "IDW-Sample | registered at | report |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    for r, src in rows:
+        noise = max(c["colmap_rot_err_deg_median"] for c in r["captures"])
+        bend = max(c.get("colmap_bend_deg", float("nan")) for c in r["captures"])
+        b = r.get("blend_psnr") or {}
+        link = f"[{src.stem}]({src.with_suffix('.md').name})"
+        errs = r["registration"]["errors"]
+        if errs is None:
+            lines.append(f"| {r['case']} | refused | | | FAIL | {noise:.3f} | {bend:.2f} | - | - | "
+                         f"{r.get('registered_at_commit')} | {link} |")  # fmt: skip
+            continue
+        for e in errs:
+            lines.append(f"| {r['case']} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | {e['s_err']:.5f} | "
+                         f"{'FAIL' if e['failure'] else 'ok'} | {noise:.3f} | {bend:.2f} | "
+                         f"{_fmt(b.get('nearest'), 2)} | {_fmt(b.get('idw_sample'), 2)} | "
+                         f"{r.get('registered_at_commit')} | {link} |")  # fmt: skip
+    records = [r for r, _ in rows]
+    summary = summarise(records)
+    lines += ["", "Per layout:", ""]
+    for layout in sorted({r["spec"].rsplit(":", 1)[0] for r in records}):
+        lines.append("- " + summarise([r for r in records if r["spec"].startswith(layout + ":")]).line(f"{layout}: "))
+    blends = summary.idw_sample_over_nearest
+    lines += ["", f"IDW-Sample >= Nearest on {sum(blends)} of {len(blends)} cases with a blend.", "",
+              "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok else 'NOT met'}"
+                                                     for t, ok in summary.targets()) + ".",
+              "", summary.line(), ""]  # fmt: skip
+    write_text_atomic(path, "\n".join(lines))
+
+
+def main(cfg: TallyPractitioner) -> None:
+    write_tally(collect(cfg.records), cfg.report)
+    print(f"tally: {cfg.report}")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(TallyPractitioner))

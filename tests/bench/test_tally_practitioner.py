@@ -1,0 +1,87 @@
+"""The practitioner reports' summary (:func:`nerfuser_ns.bench.practitioner_cases.summarise`) and the tally of case
+records from several reports (scripts/tally_practitioner.py)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nerfuser_ns.bench.practitioner_cases import summarise
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def tally():
+    spec = importlib.util.spec_from_file_location("tally_practitioner_script", ROOT / "scripts/tally_practitioner.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass resolves its annotations through it
+    spec.loader.exec_module(module)
+    return module
+
+
+def _record(case: str, r: float | None, failure: bool = False, nearest: float = 20.0, idw_sample: float = 21.0,
+            optimized: float | None = None) -> dict:  # fmt: skip
+    errors = None if r is None else [{"nerf": "b", "r_err_deg": r, "t_err": r / 10, "s_err": r / 100,
+                                      "failure": failure}]  # fmt: skip
+    registration = {"errors": errors}
+    if optimized is not None:
+        registration["errors_optimized"] = [{"nerf": "b", "r_err_deg": optimized, "t_err": 0.0, "s_err": 0.0,
+                                             "failure": False}]  # fmt: skip
+    return {"case": case, "spec": ":".join(case.rsplit("-", 1)),
+            "captures": [{"colmap_rot_err_deg_median": 0.05, "colmap_bend_deg": 0.1}],
+            "registration": registration, "blend_psnr": {"nearest": nearest, "idw_sample": idw_sample},
+            "registered_at_commit": "abc1234"}  # fmt: skip
+
+
+def test_summary_counts_a_refused_registration_as_a_failure_and_takes_medians_over_the_scored():
+    records = [_record("street-1", 0.05), _record("street-2", 0.2), _record("drive-1", 7.0, failure=True),
+               _record("room-1", None, nearest=15.0, idw_sample=14.0)]  # fmt: skip
+    s = summarise(records)
+    assert (s.cases, s.nerfs) == (4, 4)
+    assert s.success == pytest.approx(0.5)
+    assert s.median["r_err_deg"] == pytest.approx(0.2) and s.median["t_err"] == pytest.approx(0.02)
+    assert s.idw_sample_over_nearest == [True, True, True, False]
+    verdicts = dict(s.targets())
+    assert not verdicts["success rate >= 0.95"] and not verdicts["median r_err <= 0.1 deg"]
+    assert verdicts["median s_err <= 0.005"] and not verdicts["IDW-Sample >= Nearest on every scene"]
+    assert s.line() == ("4 case(s), 4 registered NeRF(s): median r_err 0.2000 deg, t_err 0.02000, s_err 0.00200; "
+                        "success rate 0.50.")  # fmt: skip
+
+
+def test_summary_against_another_truth_leaves_out_the_cases_without_it():
+    records = [_record("street-1", 0.3, optimized=0.05), _record("street-2", 0.2), _record("room-1", None)]
+    s = summarise(records, "errors_optimized")
+    assert (s.cases, s.nerfs, s.success) == (1, 1, 1.0) and s.median["r_err_deg"] == pytest.approx(0.05)
+    empty = summarise([_record("room-1", None)], "errors_optimized")
+    assert empty.nerfs == 0 and np.isnan(empty.median["r_err_deg"]) and empty.success == 0.0
+
+
+def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_path):
+    first, second = tmp_path / "bench_practitioner_a.json", tmp_path / "bench_practitioner_b.json"
+    first.write_text(json.dumps([_record("street-1", 0.3), _record("object-centric-1", 0.08)]))
+    second.write_text(json.dumps([_record("street-1", 0.06), _record("room-3", 117.0, failure=True)]))
+    rows = tally.collect([first, second])
+    assert [(r["case"], src) for r, src in rows] == [("street-1", second), ("object-centric-1", first),
+                                                     ("room-3", second)]  # fmt: skip
+    out = tmp_path / "tally.md"
+    tally.write_tally(rows, out)
+    text = out.read_text()
+    assert "| street-1 | 0.0600 |" in text and "0.3000" not in text
+    assert "[bench_practitioner_b](bench_practitioner_b.md)" in text
+    assert text.rstrip().endswith("3 case(s), 3 registered NeRF(s): median r_err 0.0800 deg, t_err 0.00800, "
+                                  "s_err 0.00080; success rate 0.67.")  # fmt: skip
+
+
+def test_tally_refuses_a_file_that_holds_no_case_records(tally, tmp_path):
+    bad = tmp_path / "eval.json"
+    bad.write_text(json.dumps({"results": {"psnr": 20.0}}))
+    with pytest.raises(SystemExit, match="eval.json: expected a list of case records"):
+        tally.collect([bad])
+    with pytest.raises(SystemExit, match="missing.json: not a readable"):
+        tally.collect([tmp_path / "missing.json"])
