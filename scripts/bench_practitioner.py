@@ -673,7 +673,8 @@ def _truth_blend_section(records: list[dict]) -> list[str]:
         tables = {("stored", "estimated"): r["blend_psnr"]}
         tables.update({TRUTH_BLENDS[label]: t["blend_psnr"] for label, t in r["truth_blends"].items()})
         for (placement, transforms), b in tables.items():
-            lines.append(f"| {r['case']} | {placement} truth | {transforms} | " + " | ".join(
+            blended = transforms if transforms == "estimated" else f"{transforms} truth"
+            lines.append(f"| {r['case']} | {placement} truth | {blended} | " + " | ".join(
                 "-" if b[k] is None else f"{b[k]:.2f}" for k, _ in BLEND_COLUMNS) + " |")  # fmt: skip
         for placement in ("stored", "content"):
             est, true = tables.get((placement, "estimated")), tables.get((placement, placement))
