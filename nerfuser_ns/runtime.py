@@ -293,10 +293,22 @@ def _probe_backward(module: nn.Module, in_tensor: torch.Tensor) -> None:
     probed.add(in_tensor.requires_grad)
 
 
+_FAST_PATH_MIN_TORCH = (2, 2)
+"""Oldest torch whose compile of the hash encoding is not known to fail (2.1.2 fails; 2.11 and 2.13 measured)."""
+
+
+def _torch_version() -> tuple[int, int]:
+    major, minor = torch.__version__.split(".")[:2]
+    return int(major), int("".join(c for c in minor if c.isdigit()) or 0)
+
+
 def _compile_unusable_reason() -> str | None:
     """Why ``torch.compile`` cannot run in this process (None: it may; a failure at compile time is caught later)."""
     if not callable(getattr(torch, "compile", None)):
         return f"torch {torch.__version__} has no torch.compile (torch >= 2.0 needed)"
+    if _torch_version() < _FAST_PATH_MIN_TORCH:
+        # measured on 2.1.2: inductor's backward of the hash encoding with dynamic shapes fails (AssertionError)
+        return f"torch {torch.__version__}'s inductor cannot compile the hash encoding's backward (torch >= 2.2 needed)"
     try:
         from torch._dynamo.eval_frame import check_if_dynamo_supported  # here: a private module, may move
     except ImportError:  # pragma: no cover - a torch that moved it: let the compile attempt decide
