@@ -526,6 +526,11 @@ def _short(name: str) -> str:
     return path.parents[2].name if path.name == "config.yml" and len(path.parents) > 3 else name
 
 
+def _psnr_cells(b: dict) -> str:
+    """One blend table's PSNR cells, in :data:`BLEND_COLUMNS` order ("-" for a method not scored)."""
+    return " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in BLEND_COLUMNS)
+
+
 def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> None:
     training = (f"{cfg.max_num_iterations} steps with CPU-sized options ({' '.join(TRAIN_OPTIONS)})"
                 if cfg.train_preset == "cpu" else
@@ -588,8 +593,7 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         b = r.get("blend_psnr")
         if b:
             mark = " *matched*" if r.get("fused_appearance_matching") else ""
-            lines.append(f"| {r['case']}{mark} | " + " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in
-                                                          BLEND_COLUMNS) + " |")  # fmt: skip
+            lines.append(f"| {r['case']}{mark} | {_psnr_cells(b)} |")
     lines += _truth_blend_section(records)
     lines += _held_out_section(records)
     lines += ["", "## Time of every step (s)", ""]
@@ -674,8 +678,7 @@ def _truth_blend_section(records: list[dict]) -> list[str]:
         tables.update({TRUTH_BLENDS[label]: t["blend_psnr"] for label, t in r["truth_blends"].items()})
         for (placement, transforms), b in tables.items():
             blended = transforms if transforms == "estimated" else f"{transforms} truth"
-            lines.append(f"| {r['case']} | {placement} truth | {blended} | " + " | ".join(
-                "-" if b[k] is None else f"{b[k]:.2f}" for k, _ in BLEND_COLUMNS) + " |")  # fmt: skip
+            lines.append(f"| {r['case']} | {placement} truth | {blended} | {_psnr_cells(b)} |")
         for placement in ("stored", "content"):
             est, true = tables.get((placement, "estimated")), tables.get((placement, placement))
             if est and true:
@@ -700,8 +703,7 @@ def _held_out_section(records: list[dict]) -> list[str]:
     for r in rows:
         for cap, h in r["held_out"].items():
             b = h["blend_psnr"]
-            lines.append(f"| {r['case']} | {cap} ({h['views']}) | {h['own_psnr']:.2f} | " + " | ".join(
-                "-" if b[k] is None else f"{b[k]:.2f}" for k, _ in BLEND_COLUMNS) + " |")  # fmt: skip
+            lines.append(f"| {r['case']} | {cap} ({h['views']}) | {h['own_psnr']:.2f} | {_psnr_cells(b)} |")
     lines += ["", "PSNR (dB) from `ns-eval`'s JSON."]
     return lines
 
