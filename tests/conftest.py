@@ -3,7 +3,11 @@ in which the test files are handed to the two test processes."""
 
 from __future__ import annotations
 
+import importlib.util
+import sys
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -32,6 +36,23 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         return LONGEST_FIRST.index(path) if path in LONGEST_FIRST else len(LONGEST_FIRST)
 
     items.sort(key=rank)  # stable: every file's tests keep their order, the other files theirs
+
+
+@pytest.fixture(scope="session")
+def load_script() -> Callable[[str], ModuleType]:
+    """``load_script(name)``: ``scripts/<name>.py`` imported as the module ``<name>_script``, once per session (kept in
+    ``sys.modules``, through which its dataclasses resolve their annotations)."""
+
+    def load(name: str) -> ModuleType:
+        module_name = f"{name}_script"
+        if module_name not in sys.modules:
+            spec = importlib.util.spec_from_file_location(module_name, TESTS.parent / "scripts" / f"{name}.py")
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[module_name] = module
+            spec.loader.exec_module(module)
+        return sys.modules[module_name]
+
+    return load
 
 
 @pytest.fixture(scope="session")

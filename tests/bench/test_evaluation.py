@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import re
@@ -359,13 +358,10 @@ def test_cost_and_gamma_sweep_on_cuda_models(tiny, models):
         assert gpu[5.0][m]["psnr"] == pytest.approx(cpu[5.0][m]["psnr"], abs=0.05)
 
 
-def test_demo_script_scores_a_given_registration(tiny, tmp_path, monkeypatch):
+def test_demo_script_scores_a_given_registration(tiny, tmp_path, monkeypatch, load_script):
     """scripts/demo.py on the tiny runs, blending with a registration file given (the ground truth): the estimated
     column equals the ground-truth one and the registration errors are zero."""
-    spec = importlib.util.spec_from_file_location("demo_script", ROOT / "scripts/demo.py")
-    demo = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "demo_script", demo)  # dataclasses resolve their annotations through it
-    spec.loader.exec_module(demo)
+    demo = load_script("demo")
     runs_dir = tiny.configs[0].parents[3]
     reg = write_minimal_registration([
         NerfEntry(n, c, T) for n, c, T in zip(tiny.captures, tiny.configs, tiny.nerf_to_common(), strict=True)
@@ -408,13 +404,10 @@ def test_demo_script_scores_a_given_registration(tiny, tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     "script, config", [("evaluate", "EvaluateConfig"), ("bench_baselines", "BenchBaselinesConfig")]
 )
-def test_scripts_needing_open3d_say_so_before_any_work(script, config, tmp_path, monkeypatch):
+def test_scripts_needing_open3d_say_so_before_any_work(script, config, tmp_path, monkeypatch, load_script):
     """Open3D is the optional ``baselines`` extra: without it, one line naming it and the install command, nothing
     written."""
-    spec = importlib.util.spec_from_file_location(f"{script}_script", ROOT / f"scripts/{script}.py")
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, f"{script}_script", module)
-    spec.loader.exec_module(module)
+    module = load_script(script)
     monkeypatch.setitem(sys.modules, "open3d", None)  # import open3d raises ImportError
     out = tmp_path / "out"
     args = ["--output-dir", str(out)] if script == "evaluate" else ["--output", str(out / "baselines.json")]

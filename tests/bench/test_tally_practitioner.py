@@ -3,26 +3,17 @@ records from several reports (scripts/tally_practitioner.py)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from nerfuser_ns.bench.practitioner_cases import summarise
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 @pytest.fixture(scope="module")
-def tally():
-    spec = importlib.util.spec_from_file_location("tally_practitioner_script", ROOT / "scripts/tally_practitioner.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclass resolves its annotations through it
-    spec.loader.exec_module(module)
-    return module
+def tally(load_script):
+    return load_script("tally_practitioner")
 
 
 def _record(case: str, r: float | None, failure: bool = False, nearest: float = 20.0, idw_sample: float = 21.0,

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -16,12 +14,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def script():
-    spec = importlib.util.spec_from_file_location("validate_coverage_script", ROOT / "scripts/validate_coverage.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclass resolves its annotations through it
-    spec.loader.exec_module(module)
-    return module
+def script(load_script):
+    return load_script("validate_coverage")
 
 
 def _case(deltas: dict[tuple[float, int], float]) -> dict:
