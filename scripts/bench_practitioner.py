@@ -526,6 +526,12 @@ def _short(name: str) -> str:
     return path.parents[2].name if path.name == "config.yml" and len(path.parents) > 3 else name
 
 
+def _blend_header(*lead: str) -> list[str]:
+    """A blend table's header and separator rows: the ``lead`` columns, then one per method (:data:`BLEND_COLUMNS`)."""
+    names = [*lead, *(n for _, n in BLEND_COLUMNS)]
+    return ["| " + " | ".join(names) + " |", "|" + " --- |" * len(names)]
+
+
 def _psnr_cells(b: dict) -> str:
     """One blend table's PSNR cells, in :data:`BLEND_COLUMNS` order ("-" for a method not scored)."""
     return " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in BLEND_COLUMNS)
@@ -587,8 +593,7 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
     lines += ["", "## Blending (PSNR from `ns-eval`'s JSON, estimated registration, world-posed test views)", "",
               "The fused model's defaults when the case ran: appearance matching (ours) off, unless the case is "
               "marked *matched*.", "",
-              "| case | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
-              "| --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
+              *_blend_header("case")]
     for r in records:
         b = r.get("blend_psnr")
         if b:
@@ -670,8 +675,7 @@ def _truth_blend_section(records: list[dict]) -> list[str]:
              "everything else as registered), scored by `ns-eval` on the same world-posed test views, placed in the "
              "reference NeRF's frame by that truth: what the registration's error costs the blend. *Content*: the "
              "runs' content frames (`--stages content`).", "",
-             "| case | test views placed by | transforms | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
-             "| --- | --- | --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
+             *_blend_header("case", "test views placed by", "transforms")]
     notes = []
     for r in rows:
         tables = {("stored", "estimated"): r["blend_psnr"]}
@@ -698,8 +702,7 @@ def _held_out_section(records: list[dict]) -> list[str]:
              "(nerfstudio's eval split), posed through the estimated registration (`\"test_run\": i` in the fusion "
              "spec). *Own NeRF*: nerfstudio's `ns-eval` of that capture's run alone on the same images. NeRF (ref.) "
              "is the reference run's NeRF, whatever the capture.", "",
-             "| case | capture (views) | Own NeRF | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
-             "| --- | --- | --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
+             *_blend_header("case", "capture (views)", "Own NeRF")]
     for r in rows:
         for cap, h in r["held_out"].items():
             b = h["blend_psnr"]
@@ -736,8 +739,7 @@ def write_coverage_report(records: list[dict], path: Path) -> None:
              "here chose them: sigma 20 deg / k 4 was set before any measurement; sigma 40 deg / k 4 was chosen on "
              "the validation seeds street-0 and drive-0 (`validate_coverage_drive0.md`). `coverage` is ours; NeRF, "
              "Nearest, IDW-2D, IDW-3D and IDW-Sample are the paper's (Table 2).", "",
-             "| case | layout | " + " | ".join(n for _, n in BLEND_COLUMNS) + " |",
-             "| --- | --- |" + " --- |" * len(BLEND_COLUMNS)]  # fmt: skip
+             *_blend_header("case", "layout")]
     for r in rows:
         p, q = r["blend_psnr"], r["blend_ssim"]
         mark = " *matched*" if r.get("fused_appearance_matching") else ""
