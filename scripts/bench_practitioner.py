@@ -129,7 +129,8 @@ class BenchPractitioner:
     ``matched`` / ``unmatched`` (not defaults) score the fused run again with appearance matching forced on / off
     (:func:`stage_appearance`); ``truth`` (not a default) blends with the true transforms instead of the estimated
     ones (:func:`stage_truth`); ``held-out`` (not a default) scores the blend on each capture's own held-out images,
-    the way a user without ground truth would (:func:`stage_held_out`)."""
+    the way a user without ground truth would (:func:`stage_held_out`); ``direct`` (not a default) registers again
+    with the direct alignment set the other way and scores the blend with it (:func:`stage_direct`)."""
     report: Path | None = None
     """Write the markdown report here (after the stages)."""
     report_only: bool = False
@@ -423,6 +424,44 @@ def stage_truth(layout, case_dir: Path, gt: list[dict]) -> None:
         _fuse_and_eval(case_dir, spec, label)
 
 
+def direct_label(case_dir: Path) -> str | None:
+    """The ``direct`` stage's label: the direct alignment set the other way from the ``register`` stage's record
+    (``direct_on`` when that one ran without it), None before that stage."""
+    reg_path = case_dir / "registration.json"
+    if not reg_path.is_file():
+        return None
+    was = read_registration(reg_path)["settings"].get("direct", {}).get("enabled", False)
+    return "direct_off" if was else "direct_on"
+
+
+def stage_direct(layout, case_dir: Path, gt: list[dict]) -> None:
+    """The direct alignment (ours, ``--direct.enabled``) against the registration without it: ``ns-nerfuser-register``
+    again with that one option set the other way from the ``register`` stage's (renders and SfM reused from its work
+    folder), then the fused run with it, scored by ``ns-eval`` on the test views the ``fuse`` stage places (stored
+    truth) and, after the ``content`` stage, on those the content frames place (as the ``truth`` stage does)."""
+    label = direct_label(case_dir)
+    if label is None:
+        return
+    output = case_dir / f"registration_{label}.json"
+    if not output.is_file():
+        cmd = [str(BIN / "ns-nerfuser-register"), "--configs",
+               *[str(run_config(case_dir, c.name)) for c in layout.captures], "--output", str(output),
+               "--work-dir", str(case_dir / "registration_work"),
+               "--direct.enabled" if label == "direct_on" else "--direct.no-enabled"]  # fmt: skip
+        _add_time(case_dir, f"register ({label})", _run(cmd, case_dir / f"register_{label}.log"))
+    ref = read_registration(output)["reference"]["index"]
+    for placement, to_world in (("stored", [g["nerf_to_world"] for g in gt]),
+                                ("content", content_ground_truth(case_dir, gt))):  # fmt: skip
+        name = label if placement == "stored" else f"content_{label}"
+        if to_world is None or (case_dir / f"eval_{name}.json").is_file():
+            continue
+        spec = write_fusion_spec(
+            case_dir / f"fusion_{name}.json", [run_config(case_dir, c.name) for c in layout.captures],
+            registration=output.name, test_data="test", test_to_common=sim3.invert_sim3(to_world[ref]),
+        )  # fmt: skip
+        _fuse_and_eval(case_dir, spec, name)
+
+
 COST_METHODS = ("idw-sample", "coverage")
 
 
@@ -497,6 +536,16 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     truth_blends = {label: _blend_table(path) for label, path in truth_evals(case_dir).items() if path.is_file()}
     if truth_blends:
         record["truth_blends"] = truth_blends
+    label = direct_label(case_dir)
+    if label is not None and (case_dir / f"registration_{label}.json").is_file():
+        other = read_registration(case_dir / f"registration_{label}.json")
+        truths = [t for t in ("nerf_to_world", "nerf_to_world_optimized", "nerf_to_world_content")
+                  if all(t in g for g in gt)]  # fmt: skip
+        record["direct"] = {"label": label, "errors": {t: _errors(other, gt, t) for t in truths},
+                            "pairs": (other.get("direct") or {}).get("pairs"), "timings_s": other.get("timings_s"),
+                            "blends": {placement: _blend_table(path) for placement, path in
+                                       (("stored", case_dir / f"eval_{label}.json"),
+                                        ("content", case_dir / f"eval_content_{label}.json")) if path.is_file()}}
     held_out = {}
     for cap in layout.captures:
         fused_json, own_json = held_out_evals(case_dir, cap.name)
@@ -600,6 +649,7 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
             mark = " *matched*" if r.get("fused_appearance_matching") else ""
             lines.append(f"| {r['case']}{mark} | {_psnr_cells(b)} |")
     lines += _truth_blend_section(records)
+    lines += _direct_section(records)
     lines += _held_out_section(records)
     lines += ["", "## Time of every step (s)", ""]
     for r in records:
@@ -690,6 +740,42 @@ def _truth_blend_section(records: list[dict]) -> list[str]:
                 notes.append(f"- {r['case']}, test views placed by the {placement} truth: estimated transforms "
                              f"minus true ones, IDW-Sample {d_sample:+.2f} dB, Nearest {d_nearest:+.2f} dB")
     return lines + ["", "PSNR (dB) from `ns-eval`'s JSON.", "", *notes]
+
+
+def _direct_section(records: list[dict]) -> list[str]:
+    """The registration and the blend with the direct alignment set either way (:func:`stage_direct`)."""
+    rows = [r for r in records if r.get("direct") and r.get("registration", {}).get("errors")]
+    if not rows:
+        return []
+    lines = ["", "### Direct alignment (`--stages direct`: `--direct.enabled`, ours)", "",
+             "The registration again with the direct photometric alignment set the other way from the `register` "
+             "stage's (renders and SfM reused), errors of the non-reference NeRF against each truth, and the fused "
+             "run with it scored by `ns-eval` on the same test views (IDW-Sample / Nearest PSNR, dB).", "",
+             "| case | direct | r / t / s vs stored truth | vs camera-optimised | vs content | IDW-Sample / Nearest "
+             "(stored) | (content) |", "|" + " --- |" * 7]  # fmt: skip
+    keys = ("nerf_to_world", "nerf_to_world_optimized", "nerf_to_world_content")
+    for r in rows:
+        d = r["direct"]
+        own = {"nerf_to_world": r["registration"]["errors"],
+               "nerf_to_world_optimized": r["registration"].get("errors_optimized"),
+               "nerf_to_world_content": r["registration"].get("errors_content")}
+        own_blends = {"stored": {"blend_psnr": r.get("blend_psnr")},
+                      "content": r.get("truth_blends", {}).get("content_estimated")}
+        for setting, errors, blends in (("off" if d["label"] == "direct_on" else "on", own, own_blends),
+                                        ("on" if d["label"] == "direct_on" else "off", d["errors"], d["blends"])):
+            cells = []
+            for k in keys:
+                e = (errors.get(k) or [None])[0]
+                cells.append("-" if e is None else f"{e['r_err_deg']:.3f} / {e['t_err']:.4f} / {e['s_err']:.4f}")
+            for placement in ("stored", "content"):
+                b = (blends.get(placement) or {}).get("blend_psnr")
+                cells.append("-" if not b else f"{b['idw_sample']:.2f} / {b['nearest']:.2f}")
+            lines.append(f"| {r['case']} | {setting} | " + " | ".join(cells) + " |")
+        for p in d.get("pairs") or []:
+            c = p["change"]
+            lines.append(f"| | | {'kept' if p['used'] else 'not kept'}: {p['reason']}; {p['pixels']} pixels, "
+                         f"change {c['r_deg']:.4f} deg / {c['t']:.5f} / {c['s']:.5f} | | | | |")
+    return lines + ["", "r in degrees, t in the reference NeRF's units, s in log scale."]
 
 
 def _held_out_section(records: list[dict]) -> list[str]:
@@ -824,6 +910,8 @@ def main(cfg: BenchPractitioner) -> None:
                 stage_content(layout, case_dir, gt)
             if "truth" in cfg.stages:
                 stage_truth(layout, case_dir, gt)
+            if "direct" in cfg.stages:
+                stage_direct(layout, case_dir, gt)
             if "held-out" in cfg.stages:
                 stage_held_out(layout, case_dir)
         if not cfg.report_only and "cost" in cfg.stages:

@@ -196,6 +196,37 @@ class KnownGeometryConfig:
 
 
 @dataclass
+class DirectConfig:
+    """Direct photometric alignment of each linked NeRF pair after the bundle adjustment (ours; mode sfm): every
+    textured pixel the two NeRFs both render, instead of the SfM's keypoints (:mod:`.direct`)."""
+
+    enabled: bool = False
+    """Run it (--direct.enabled / --direct.no-enabled)."""
+    views: int = 8
+    """Views per direction and pair: each NeRF's views that share the most SfM points with the other first; the other
+    NeRF is rendered there with depth."""
+    render_factor: int = 2
+    """Those renders at 1/render_factor of the registration's render size (their pixels are compared with the full-size
+    renders the SfM used, so this thins the samples, not the images they are read from)."""
+    max_pixels_per_view: int = 20000
+    """Samples per view at most (drawn with ``seed``)."""
+    min_pixels: int = 2000
+    """A pair with fewer samples keeps its transform."""
+    iterations: int = 1
+    """Render-and-fit rounds per pair (each round renders again at the refined transform)."""
+    max_evaluations: int = 60
+    """Residual evaluations per fit (scipy least_squares ``max_nfev``; a numeric Jacobian takes 8 per step)."""
+    max_change_deg: float = 1.0
+    """A fit that turns the transform by more than this keeps the bundle adjustment's transform."""
+    max_change_distance: float = 0.02
+    """... or moves it by more than this fraction of the views' median depth ..."""
+    max_change_log_scale: float = 0.02
+    """... or changes its scale by more than this in log scale."""
+    seed: int = 0
+    """Seed of the pixel draw."""
+
+
+@dataclass
 class GraphConfig:
     """Registration of many NeRFs as a SIM(3) pose graph: candidate NeRF pairs from the renders' visual words (or the
     neighbours given), each pair registered on known geometry (the known-geometry settings apply), the pairwise
@@ -273,6 +304,8 @@ class RegistrationConfig:
     per camera (measured: median rotation error 2-3x lower on CPU-trained nerfacto NeRFs)."""
     refine_loss_scale_px: float = 1.0
     """Refinement: soft-L1 loss scale in pixels (reprojection errors well above it barely pull)."""
+    direct: DirectConfig = field(default_factory=DirectConfig)
+    """Direct photometric alignment after the refinement (mode sfm, ours)."""
     camera_check: bool = True
     """Fail when a NeRF's SfM cameras disagree with its final transform beyond the paper's failure rule (their
     median: 5 deg or 0.2 reference units): the refinement then followed points seen across NeRFs that the cameras
@@ -351,6 +384,14 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
          "--known-geometry.min-inliers must be >= 3, --known-geometry.max-hypotheses and hypothesis-views >= 1"),
         (0.0 <= kg.min_hypothesis_fraction <= 1.0 and kg.ambiguity_margin >= 0,
          "--known-geometry.min-hypothesis-fraction must be in [0, 1] and --known-geometry.ambiguity-margin >= 0"),
+    ]
+    dc = config.direct
+    checks += [
+        (dc.views >= 1 and dc.render_factor >= 1 and dc.max_pixels_per_view >= 100 and dc.min_pixels >= 0,
+         "--direct.views and --direct.render-factor must be >= 1, --direct.max-pixels-per-view >= 100"),
+        (dc.iterations >= 1 and dc.max_evaluations >= 8, "--direct.iterations must be >= 1, max-evaluations >= 8"),
+        (dc.max_change_deg > 0 and dc.max_change_distance > 0 and dc.max_change_log_scale > 0,
+         "--direct.max-change-deg, max-change-distance and max-change-log-scale must be > 0"),
     ]
     gc = config.graph
     checks += [

@@ -36,6 +36,7 @@ from nerfuser_ns.registration.config import (
     RegistrationFailed,
     validate_settings,
 )
+from nerfuser_ns.registration.direct import align_direct
 from nerfuser_ns.registration.estimate import estimate_transforms
 from nerfuser_ns.registration.graph import register_graph
 from nerfuser_ns.registration.known_geometry import (
@@ -260,11 +261,19 @@ def register_once(
             T_to_ref, refinement = refine_transforms(views, sfm, T_to_C, ref, intr, config.refine_loss_scale_px)
         T_to_C = T_to_C[ref] @ T_to_ref
     timings["solve"] = time.perf_counter() - t0
+    overlap = covisibility(views, sfm)  # between NeRFs: 3D points seen by both
+    direct = None
+    if config.direct.enabled:  # 4b. direct alignment of the pairs the self-check will check
+        t0 = time.perf_counter()
+        tree = spanning_pairs(overlap)
+        T_to_ref, direct = align_direct(renderers, views, T_to_ref, tree, ref, intr, config.direct,
+                                        best_views(views, sfm, tree), console)  # fmt: skip
+        T_to_C = T_to_C[ref] @ T_to_ref
+        timings["direct"] = time.perf_counter() - t0
 
-    # 5. Other SfM models against the solution, overlap between NeRFs (3D points seen by both) and the cross-render
-    # self-check (not rendered when the models already refuse the solution).
+    # 5. Other SfM models against the solution and the cross-render self-check (not rendered when the models already
+    # refuse the solution).
     models = model_failure(views, sfm, T_to_ref, config) if config.model_check else None
-    overlap = covisibility(views, sfm)
     checked_pairs = spanning_pairs(overlap) if config.self_check_views > 0 and models is None else []
     t0 = time.perf_counter()
     with console.status("self-check: cross-rendering NeRF pairs"):
@@ -277,6 +286,7 @@ def register_once(
         renderers=renderers, views=views, sfm=sfm, estimates=estimates, T_to_ref=T_to_ref, T_to_C=T_to_C,
         refinement=refinement, overlap=overlap, checks=checks, config=config, intrinsics=intr, timings=timings,
     )
+    result.direct = direct
     failure = check_failure(result, checks, config, models)
     if failure is not None:
         raise RegistrationFailed(failure, result)

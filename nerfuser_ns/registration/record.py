@@ -341,6 +341,9 @@ class RegistrationResult:
     graph: dict | None = None
     """Mode graph: the candidate NeRF pairs, per NeRF its length scale and transforms, per pair (edge) its status,
     reason and residual, per cycle its residual (:func:`.assemble.graph_section`)."""
+    direct: dict | None = None
+    """Direct alignment (``--direct.enabled``): per NeRF pair what it did (:class:`.direct.PairAlignment`), and its
+    settings."""
     reference_colour: dict | None = None
     """Appearance matching: the reference NeRF's colour map to its training images (``map``, ``views``, ``pixels``)
     or why there is none (``skipped``); already composed into every ``colour_to_reference``."""
@@ -373,6 +376,8 @@ class RegistrationResult:
             record["graph"] = self.graph
         if self.sampling_choice is not None:
             record["sampling_choice"] = self.sampling_choice
+        if self.direct is not None:
+            record["direct"] = self.direct
         if self.reference_colour is not None:
             record["reference_colour"] = self.reference_colour
         return {**record, **self.extra}
@@ -383,7 +388,7 @@ class RegistrationResult:
         kept in ``extra``. Raises :class:`RegistrationError` when a key is missing or malformed."""
         known = {"format_version", "kind", "created", "reference", "conventions", "nerfs", "pairs", "sfm",
                  "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice",
-                 "known_geometry", "graph", "reference_colour"}  # fmt: skip
+                 "known_geometry", "graph", "reference_colour", "direct"}  # fmt: skip
         try:
             if record.get("kind") != KIND:
                 raise ValueError(f"kind {record.get('kind')!r} is not {KIND!r}")
@@ -395,7 +400,7 @@ class RegistrationResult:
                 known_geometry=record.get("known_geometry"), graph=record.get("graph"),
                 refinement=record["refinement"], settings=record["settings"], timings_s=record["timings_s"],
                 compute_timings_s=record["compute_timings_s"], sampling_choice=record.get("sampling_choice"),
-                reference_colour=record.get("reference_colour"),
+                reference_colour=record.get("reference_colour"), direct=record.get("direct"),
                 format_version=record["format_version"], extra={k: v for k, v in record.items() if k not in known},
             )  # fmt: skip
         except (KeyError, TypeError, ValueError, AttributeError) as e:
