@@ -133,6 +133,8 @@ class BenchPractitioner:
     with the direct alignment set the other way and scores the blend with it (:func:`stage_direct`)."""
     report: Path | None = None
     """Write the markdown report here (after the stages)."""
+    note: str | None = None
+    """A paragraph for the report, under its protocol (e.g. which case chose a setting: a validation case)."""
     report_only: bool = False
     """Only collect the cases' records into the report."""
     coverage_report: Path | None = None
@@ -614,6 +616,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
              "of a capture's views, 0 where one SIM(3) fits the whole reconstruction). Test views: the scene's "
              "world-posed test capture, mapped into the reference "
              "NeRF's frame by the ground truth; the blend uses the estimated registration.", ""]  # fmt: skip
+    if cfg.note:
+        lines += [cfg.note, ""]
     shared = [(r["case"], r["captures_from"]) for r in records if r.get("captures_from")]
     if shared:
         lines += ["Shared inputs: " + "; ".join(f"{c} uses the images, COLMAP datasets and test views of `{src}` "

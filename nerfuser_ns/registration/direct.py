@@ -36,10 +36,12 @@ from nerfuser_ns.appearance import OPAQUE
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.config import DirectConfig
 from nerfuser_ns.registration.known_geometry import bilinear, pixel_rays, project
+from nerfuser_ns.registration.pairwise import gives_depth
 from nerfuser_ns.registration.render_cache import ViewSet
 from nerfuser_ns.renderers import Renderer
 
 LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+NO_CHANGE = {"r_deg": 0.0, "t": 0.0, "s": 0.0}
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Pure geometry (the tests check these directly)
@@ -162,10 +164,10 @@ class PairAlignment:
     """Why it was or was not kept, in words."""
     views: int
     pixels: int
-    cost_before: float
-    cost_after: float
-    """Mean soft-L1 cost of the residuals (in units of the loss scale) before and after."""
-    loss_scale: float
+    cost_before: float | None
+    cost_after: float | None
+    """Mean soft-L1 cost of the residuals (in units of the loss scale) before and after (None: not fitted)."""
+    loss_scale: float | None
     change: dict
     """How far the child's transform moved (r_deg, t in the parent's units, s), whether kept or not."""
 
@@ -208,10 +210,9 @@ def align_pair(
     """Fit the correction of one pair's transform ``T: c -> p`` to its samples; returns the transform to use (``T``
     itself unless the fit is kept) and what happened."""
     pixels = int(sum(len(s.values) for s in samples))
-    nothing = {"r_deg": 0.0, "t": 0.0, "s": 0.0}
     if pixels < cfg.min_pixels:
         return T, PairAlignment(parent, child, False, f"{pixels} pixels (< {cfg.min_pixels})", len(samples), pixels,
-                                float("nan"), float("nan"), float("nan"), nothing)  # fmt: skip
+                                None, None, None, dict(NO_CHANGE))  # fmt: skip
     # the correction's centre and length unit, in the parent's frame (child-side points mapped there by T)
     in_parent = [(s.points, s.c2w[:3, 3]) if s.parent_side else
                  (sim3.transform_points(T, s.points), sim3.transform_points(T, s.c2w[:3, 3])) for s in samples]
@@ -271,6 +272,13 @@ def align_direct(
     results = []
     for parent, child in tree_edges(pairs, ref):
         T = sim3.relative_sim3(T_to_ref[parent], T_to_ref[child])  # child -> parent
+        no_depth = [renderers[i].name for i in (parent, child) if not gives_depth(renderers[i])]
+        if no_depth:
+            console.print(f"direct alignment {views[parent].name} / {views[child].name}: skipped ({no_depth[0]}'s "
+                          "renderer gives no depth)")  # fmt: skip
+            results.append(PairAlignment(parent, child, False, f"{no_depth[0]}'s renderer gives no depth", 0, 0,
+                                         None, None, None, dict(NO_CHANGE)))  # fmt: skip
+            continue
         for _ in range(cfg.iterations):
             with console.status(f"direct alignment: rendering {views[parent].name} / {views[child].name} at each "
                                 f"other's views ({cfg.views} per direction, with depth)"):  # fmt: skip

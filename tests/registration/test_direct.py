@@ -103,15 +103,31 @@ def test_too_few_pixels_keep_the_transform(oc_pair):
     np.testing.assert_array_equal(T, T_true)
 
 
-def test_sfm_mode_with_direct_alignment_is_recorded_and_no_worse(oc_layout, oc_renderers, oc_record, work):
-    config = small_config(direct=direct.DirectConfig(enabled=True, views=4))
-    result = reg.register(oc_renderers, config, work, QUIET)
-    record = score_registration(result, gt_of(oc_layout))
-    section = record["direct"]
-    assert len(section["pairs"]) == 1 and section["settings"]["views"] == 4
-    assert reg.RegistrationResult.from_record(result.to_record()).direct == section
-    base, with_direct = oc_record["nerfs"][1]["ground_truth"], record["nerfs"][1]["ground_truth"]
+def test_sfm_mode_aligns_directly_by_default_and_records_it(oc_layout, oc_renderers, oc_record, work):
+    section = oc_record["direct"]  # the package's registration, every default
+    assert [(p["parent"], p["child"]) for p in section["pairs"]] == [(0, 1)]
+    assert section["settings"] == dataclasses.asdict(direct.DirectConfig())
+    assert "direct" in oc_record["compute_timings_s"]
+    without = reg.register(oc_renderers, small_config(direct=direct.DirectConfig(enabled=False)), work, QUIET)
+    record = score_registration(without, gt_of(oc_layout))
+    assert "direct" not in record and reg.RegistrationResult.from_record(record).direct is None
+    base, with_direct = record["nerfs"][1]["ground_truth"], oc_record["nerfs"][1]["ground_truth"]
     # exact renders: the bundle adjustment is already near-exact; the direct fit must not make it worse
     assert with_direct["r_err_deg"] <= max(base["r_err_deg"], 0.01) * 1.5
     assert with_direct["t_err"] <= max(base["t_err"], 0.001) * 1.5
-    assert "direct" in record["compute_timings_s"]
+
+
+def test_renderers_without_depth_keep_their_transform(oc_pair):
+    views, T_true, intr = oc_pair
+
+    class NoDepth:
+        name = "no-depth"
+
+        def render(self, c2w, intrinsics):
+            raise AssertionError("must not render")
+
+    T = np.stack([np.eye(4), sim3.invert_sim3(T_true)])
+    out, section = direct.align_direct([NoDepth(), NoDepth()], views, T, [(0, 1)], 0, intr, direct.DirectConfig(),
+                                       {}, QUIET)  # fmt: skip
+    np.testing.assert_array_equal(out, T)
+    assert section["pairs"][0]["used"] is False and "gives no depth" in section["pairs"][0]["reason"]
