@@ -262,8 +262,11 @@ def register_once(
         T_to_C = T_to_C[ref] @ T_to_ref
     timings["solve"] = time.perf_counter() - t0
     overlap = covisibility(views, sfm)  # between NeRFs: 3D points seen by both
+    # 5a. Other SfM models against the solution (no renders: before the direct alignment's, which a link they refuse
+    # would waste; its changes stay far inside their 5-degree rule)
+    models = model_failure(views, sfm, T_to_ref, config) if config.model_check else None
     direct = None
-    if config.direct.enabled:  # 4b. direct alignment of the pairs the self-check will check
+    if config.direct.enabled and models is None:  # 4b. direct alignment of the pairs the self-check will check
         t0 = time.perf_counter()
         tree = spanning_pairs(overlap)
         T_to_ref, direct = align_direct(renderers, views, T_to_ref, tree, ref, intr, config.direct,
@@ -271,9 +274,7 @@ def register_once(
         T_to_C = T_to_C[ref] @ T_to_ref
         timings["direct"] = time.perf_counter() - t0
 
-    # 5. Other SfM models against the solution and the cross-render self-check (not rendered when the models already
-    # refuse the solution).
-    models = model_failure(views, sfm, T_to_ref, config) if config.model_check else None
+    # 5b. The cross-render self-check (not rendered when the models already refuse the solution).
     checked_pairs = spanning_pairs(overlap) if config.self_check_views > 0 and models is None else []
     t0 = time.perf_counter()
     with console.status("self-check: cross-rendering NeRF pairs"):

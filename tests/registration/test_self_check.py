@@ -221,5 +221,6 @@ def test_register_refuses_an_sfm_whose_other_model_links_the_pair_otherwise(oc_r
     assert_one_line_error(rc, out, err, "capture_b: another SfM model", "10.0 deg", "--no-model-check")
     rejected = json.loads((work / "rejected_registration.json").read_text())
     assert rejected["pairs"][0]["self_check"] is None  # refused before the cross-renders
+    assert "direct" not in rejected  # ... and before the direct alignment's renders
     rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, model_check=False)
     assert rc == 0, err
