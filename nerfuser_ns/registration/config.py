@@ -201,9 +201,10 @@ class DirectConfig:
     textured pixel the two NeRFs both render, instead of the SfM's keypoints (:mod:`.direct`)."""
 
     enabled: bool = True
-    """Run it (--direct.no-enabled: the paper's path, SfM and bundle adjustment only). Chosen on the validation case
-    object-centric-11 (stock nerfacto on COLMAP-posed captures): IDW-Sample 22.35 -> 22.60 dB on test views placed by
-    the runs' content frames, 19.27 -> 19.51 dB by the stored truth; +62 s of a 15-minute registration on a CPU."""
+    """Run it (--direct.no-enabled: the SfM, the paper's estimator and the bundle adjustment only). Chosen on the
+    validation case object-centric-11 (stock nerfacto on COLMAP-posed captures): IDW-Sample 22.35 -> 22.60 dB on test
+    views placed by the runs' content frames, 19.27 -> 19.51 dB by the stored truth; +62 s of a 15-minute registration
+    on a CPU."""
     views: int = 8
     """Views per direction and pair: each NeRF's views that share the most SfM points with the other first; the other
     NeRF is rendered there with depth."""
