@@ -54,6 +54,13 @@ MIN_PIXELS = 64
 """Fewer pixel pairs than this: no map (None)."""
 MAX_GAIN = 16.0
 """Gains beyond ``[1 / MAX_GAIN, MAX_GAIN]`` (4 stops) are no exposure difference but a failed match: no map."""
+LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+"""Rec. 601 luma weights."""
+
+
+def luma(rgb: Float[np.ndarray, "*bs 3"]) -> Float[np.ndarray, "*bs"]:
+    """Rec. 601 luma of RGB colours (float32)."""
+    return rgb[..., :3].astype(np.float32) @ LUMA
 
 
 def srgb_to_linear(x: Tensor) -> Tensor:

@@ -266,12 +266,17 @@ def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
         _add_time(case_dir, f"train {cap.name}", seconds)
 
 
+def _register_command(layout, case_dir: Path, output: Path, *options: str) -> list[str]:
+    """``ns-nerfuser-register`` on the case's runs into ``output``, every option at its default but ``options``."""
+    return [str(BIN / "ns-nerfuser-register"), "--configs",
+            *[str(run_config(case_dir, c.name)) for c in layout.captures], "--output", str(output), *options]
+
+
 def stage_register(layout, case_dir: Path) -> None:
     output = case_dir / "registration.json"
     if output.is_file():
         return
-    cmd = [str(BIN / "ns-nerfuser-register"), "--configs",
-           *[str(run_config(case_dir, c.name)) for c in layout.captures], "--output", str(output)]  # fmt: skip
+    cmd = _register_command(layout, case_dir, output)
     log = case_dir / "register.log"
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     write_text_atomic(case_dir / "register_commit.txt", (commit or "unknown") + "\n")
@@ -292,12 +297,7 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
     if not (case_dir / "registration.json").is_file():
         return
     if not (case_dir / "eval.json").is_file():
-        world_to_ref = sim3.invert_sim3(gt[0]["nerf_to_world"])
-        spec = write_fusion_spec(
-            case_dir / "fusion.json", [run_config(case_dir, c.name) for c in layout.captures],
-            registration="registration.json", test_data="test", test_to_common=world_to_ref,
-        )  # fmt: skip
-        _fuse_and_eval(case_dir, spec)
+        _fuse_on_test_views(layout, case_dir, "registration.json", sim3.invert_sim3(gt[0]["nerf_to_world"]))
     if "ns-render dataset" in case_times(case_dir):
         return
     renders, partial = case_dir / "renders", case_dir / "renders.partial"
@@ -308,6 +308,19 @@ def stage_fuse(layout, case_dir: Path, gt: list[dict]) -> None:
     shutil.rmtree(renders, ignore_errors=True)
     partial.rename(renders)
     _add_time(case_dir, "ns-render dataset", seconds)
+
+
+def _fuse_on_test_views(
+    layout, case_dir: Path, registration_file: str, world_to_ref: np.ndarray, label: str | None = None
+) -> None:
+    """:func:`_fuse_and_eval` on a spec (``fusion[_<label>].json``) naming the case's runs, ``registration_file`` and
+    the world-posed test views mapped into the reference run's frame by ``world_to_ref``."""
+    spec = write_fusion_spec(
+        case_dir / ("fusion.json" if label is None else f"fusion_{label}.json"),
+        [run_config(case_dir, c.name) for c in layout.captures],
+        registration=registration_file, test_data="test", test_to_common=world_to_ref,
+    )  # fmt: skip
+    _fuse_and_eval(case_dir, spec, label)
 
 
 def _fuse_and_eval(case_dir: Path, spec: Path, label: str | None = None, options: tuple[str, ...] = ()) -> None:
@@ -419,11 +432,7 @@ def stage_truth(layout, case_dir: Path, gt: list[dict]) -> None:
         if transforms != "estimated":
             truth = [sim3.compose(world_to_ref, T) for T in truths[transforms]]
             registration_file = registration_with_transforms(reg_path, truth, f"registration_{label}.json").name
-        spec = write_fusion_spec(
-            case_dir / f"fusion_{label}.json", [run_config(case_dir, c.name) for c in layout.captures],
-            registration=registration_file, test_data="test", test_to_common=world_to_ref,
-        )  # fmt: skip
-        _fuse_and_eval(case_dir, spec, label)
+        _fuse_on_test_views(layout, case_dir, registration_file, world_to_ref, label)
 
 
 def direct_label(case_dir: Path) -> str | None:
@@ -446,10 +455,8 @@ def stage_direct(layout, case_dir: Path, gt: list[dict]) -> None:
         return
     output = case_dir / f"registration_{label}.json"
     if not output.is_file():
-        cmd = [str(BIN / "ns-nerfuser-register"), "--configs",
-               *[str(run_config(case_dir, c.name)) for c in layout.captures], "--output", str(output),
-               "--work-dir", str(case_dir / "registration_work"),
-               "--direct.enabled" if label == "direct_on" else "--direct.no-enabled"]  # fmt: skip
+        cmd = _register_command(layout, case_dir, output, "--work-dir", str(case_dir / "registration_work"),
+                                "--direct.enabled" if label == "direct_on" else "--direct.no-enabled")  # fmt: skip
         _add_time(case_dir, f"register ({label})", _run(cmd, case_dir / f"register_{label}.log"))
     ref = read_registration(output)["reference"]["index"]
     for placement, to_world in (("stored", [g["nerf_to_world"] for g in gt]),
@@ -457,11 +464,7 @@ def stage_direct(layout, case_dir: Path, gt: list[dict]) -> None:
         name = label if placement == "stored" else f"content_{label}"
         if to_world is None or (case_dir / f"eval_{name}.json").is_file():
             continue
-        spec = write_fusion_spec(
-            case_dir / f"fusion_{name}.json", [run_config(case_dir, c.name) for c in layout.captures],
-            registration=output.name, test_data="test", test_to_common=sim3.invert_sim3(to_world[ref]),
-        )  # fmt: skip
-        _fuse_and_eval(case_dir, spec, name)
+        _fuse_on_test_views(layout, case_dir, output.name, sim3.invert_sim3(to_world[ref]), name)
 
 
 COST_METHODS = ("idw-sample", "coverage")

@@ -33,15 +33,15 @@ from rich.console import Console
 from scipy.optimize import least_squares
 
 from nerfuser_ns import sim3
-from nerfuser_ns.appearance import OPAQUE
+from nerfuser_ns.appearance import OPAQUE, luma
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.config import DirectConfig
-from nerfuser_ns.registration.known_geometry import bilinear, pixel_rays, project
+from nerfuser_ns.registration.known_geometry import bilinear, pixel_index, pixel_rays, project
 from nerfuser_ns.registration.pairwise import gives_depth
 from nerfuser_ns.registration.render_cache import ViewSet
+from nerfuser_ns.registration.self_check import tree_edges
 from nerfuser_ns.renderers import Renderer
 
-LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 NO_CHANGE = {"r_deg": 0.0, "t": 0.0, "s": 0.0}
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -82,11 +82,6 @@ def subsampled(intrinsics: Intrinsics, factor: int) -> Intrinsics:
                       max(1, k.height // f))  # fmt: skip
 
 
-def luma(rgb: Float[np.ndarray, "h w 3"]) -> Float[np.ndarray, "h w"]:
-    """Rec. 601 luma of an RGB image."""
-    return rgb[..., :3].astype(np.float32) @ LUMA
-
-
 def gradient_magnitude(image: Float[np.ndarray, "h w"]) -> Float[np.ndarray, "h w"]:
     """Central-difference gradient magnitude (per pixel, edges one-sided)."""
     gy, gx = np.gradient(image.astype(np.float64))
@@ -118,8 +113,7 @@ def view_samples(
     and their colours; kept where they project onto this NeRF's opaque, textured pixels. None below 100 pixels."""
     image = luma(own_rgb)
     xy, _, inside = project(c2w, other, intrinsics)
-    rows = np.clip(np.floor(xy[:, 1]).astype(int), 0, image.shape[0] - 1)
-    cols = np.clip(np.floor(xy[:, 0]).astype(int), 0, image.shape[1] - 1)
+    rows, cols = pixel_index(xy, image.shape)
     keep = inside & (own_acc[rows, cols] >= OPAQUE)
     grad = gradient_magnitude(image)[rows, cols]
     if keep.sum() < 100:
@@ -191,12 +185,13 @@ def _pair_samples(
         if not picked:
             continue
         P = views[s].c2w[picked]
-        batch = renderers[d].render(sim3.transform_poses(T_sd, P), small, depth=True)
+        mapped, T_ds = sim3.transform_poses(T_sd, P), sim3.invert_sim3(T_sd)
+        batch = renderers[d].render(mapped, small, depth=True)
         for n, k in enumerate(picked):
             acc = batch.accumulation[n] if batch.accumulation is not None else np.ones(batch.depth[n].shape)
             ok = (acc >= OPAQUE) & (batch.depth[n] > 0)
-            pts, _ = surface_points(sim3.transform_poses(T_sd, P[n]), batch.depth[n], small)
-            pts_s = sim3.transform_points(sim3.invert_sim3(T_sd), pts[ok])
+            pts, _ = surface_points(mapped[n], batch.depth[n], small)
+            pts_s = sim3.transform_points(T_ds, pts[ok])
             sample = view_samples(P[n], views[s].load_rgb(k), accs[s][k], pts_s, batch.rgb[n][ok], intr,
                                   cfg.max_pixels_per_view, rng, s == parent)  # fmt: skip
             if sample is not None:
@@ -227,8 +222,10 @@ def align_pair(
     r0 = fun(np.zeros(7))
     scale = max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-4)
     fit = least_squares(fun, np.zeros(7), loss="soft_l1", f_scale=scale, diff_step=1e-2, max_nfev=cfg.max_evaluations)
-    before = float(np.mean(2 * (np.sqrt(1 + (r0 / scale) ** 2) - 1)))
-    after = float(np.mean(2 * (np.sqrt(1 + (fit.fun / scale) ** 2) - 1)))
+    def cost(r):  # scipy's soft-L1, in units of the loss scale
+        return float(np.mean(2 * (np.sqrt(1 + (r / scale) ** 2) - 1)))
+
+    before, after = cost(r0), cost(fit.fun)
     T_new = sim3.compose(correction(fit.x, centre, focal, distance), T)
     e = sim3.sim3_errors(T_new, T)
     change = {"r_deg": float(e.r_err_deg), "t": float(e.t_err), "s": float(e.s_err)}
@@ -242,22 +239,6 @@ def align_pair(
         used, reason = True, f"cost {before:.4f} -> {after:.4f}"
     result = PairAlignment(parent, child, used, reason, len(samples), pixels, before, after, scale, change)
     return (T_new if used else T), result
-
-
-def tree_edges(pairs: Sequence[tuple[int, int]], ref: int) -> list[tuple[int, int]]:
-    """The spanning tree's pairs as (parent, child), parents nearer the reference first (breadth-first)."""
-    edges, seen, frontier = [], {ref}, [ref]
-    while frontier:
-        nxt = []
-        for a in frontier:
-            for i, j in pairs:
-                b = j if i == a else i if j == a else None
-                if b is not None and b not in seen:
-                    seen.add(b)
-                    edges.append((a, b))
-                    nxt.append(b)
-        frontier = nxt
-    return edges
 
 
 def align_direct(

@@ -77,7 +77,7 @@ def reliable_depth(
     return opaque & (spread <= max_depth_step * np.maximum(depth, 1e-12))
 
 
-def _pixel(xy: Float[np.ndarray, "m 2"], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def pixel_index(xy: Float[np.ndarray, "m 2"], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Row and column of the pixel that contains each image point."""
     rows = np.clip(np.floor(xy[:, 1]).astype(int), 0, shape[0] - 1)
     cols = np.clip(np.floor(xy[:, 0]).astype(int), 0, shape[1] - 1)
@@ -110,7 +110,7 @@ def multiview_agreement(
         inside &= source_view != j
         if not inside.any():
             continue
-        rows, cols = _pixel(xy[inside], depth.shape[1:])
+        rows, cols = pixel_index(xy[inside], depth.shape[1:])
         ok = reliable[j, rows, cols] & (np.abs(depth[j, rows, cols] - dist[inside]) <= tolerance * dist[inside])
         agree[np.flatnonzero(inside)[ok]] += 1
     return agree
@@ -195,7 +195,7 @@ def lift_keypoints(
     detected = 0
     for k, (xy, desc) in zip(kept, extract_sift(views, kept, cfg, num_threads, verbose), strict=True):
         detected += len(xy)
-        rows, cols = _pixel(xy, depth.shape[1:])
+        rows, cols = pixel_index(xy, depth.shape[1:])
         ok = reliable[k, rows, cols]
         parts["view"].append(np.full(int(ok.sum()), k))
         parts["xy"].append(xy[ok])

@@ -45,9 +45,7 @@ from nerfuser_ns.registration.retrieval import (
     tfidf_similarity,
     view_histograms,
 )
-from nerfuser_ns.registration.self_check import (
-    view_nccs,
-)
+from nerfuser_ns.registration.self_check import tree_edges, view_nccs
 from nerfuser_ns.renderers import Renderer
 
 
@@ -240,15 +238,12 @@ def chain_from_reference(
     """NeRF -> reference SIM(3)s composed along the tree's chosen pairwise transforms (``T_b->a`` for a < b)."""
     T = np.full((k, 4, 4), np.nan)
     T[ref] = np.eye(4)
-    done = {ref}
-    while len(done) < k:
-        for a, b in tree:
-            if a in done and b not in done:  # p_ref = T_a p_a = T_a T_b->a p_b
-                T[b] = T[a] @ chosen[(a, b)].T
-                done.add(b)
-            elif b in done and a not in done:
-                T[a] = T[b] @ sim3.invert_sim3(chosen[(a, b)].T)
-                done.add(a)
+    forward = {tuple(pair) for pair in tree}
+    for parent, child in tree_edges(tree, ref):  # p_ref = T_a p_a = T_a T_b->a p_b
+        if (parent, child) in forward:
+            T[child] = T[parent] @ chosen[(parent, child)].T
+        else:
+            T[child] = T[parent] @ sim3.invert_sim3(chosen[(child, parent)].T)
     return T
 
 

@@ -262,24 +262,23 @@ def register_once(
         T_to_C = T_to_C[ref] @ T_to_ref
     timings["solve"] = time.perf_counter() - t0
     overlap = covisibility(views, sfm)  # between NeRFs: 3D points seen by both
+    tree = spanning_pairs(overlap)  # the pairs the direct alignment aligns and the self-check checks
+    order = best_views(views, sfm, tree)
     # 5a. Other SfM models against the solution (no renders: before the direct alignment's, which a link they refuse
     # would waste; its changes stay far inside their 5-degree rule)
     models = model_failure(views, sfm, T_to_ref, config) if config.model_check else None
     direct = None
-    if config.direct.enabled and models is None:  # 4b. direct alignment of the pairs the self-check will check
+    if config.direct.enabled and models is None:  # 4b. direct alignment of the tree's pairs
         t0 = time.perf_counter()
-        tree = spanning_pairs(overlap)
-        T_to_ref, direct = align_direct(renderers, views, T_to_ref, tree, ref, intr, config.direct,
-                                        best_views(views, sfm, tree), console)  # fmt: skip
+        T_to_ref, direct = align_direct(renderers, views, T_to_ref, tree, ref, intr, config.direct, order, console)
         T_to_C = T_to_C[ref] @ T_to_ref
         timings["direct"] = time.perf_counter() - t0
 
     # 5b. The cross-render self-check (not rendered when the models already refuse the solution).
-    checked_pairs = spanning_pairs(overlap) if config.self_check_views > 0 and models is None else []
+    checked_pairs = tree if config.self_check_views > 0 and models is None else []
     t0 = time.perf_counter()
     with console.status("self-check: cross-rendering NeRF pairs"):
-        checks = cross_render_check(renderers, views, T_to_ref, checked_pairs, intr, config,
-                                    best_views(views, sfm, checked_pairs))  # fmt: skip
+        checks = cross_render_check(renderers, views, T_to_ref, checked_pairs, intr, config, order)
     timings["self_check"] = time.perf_counter() - t0
 
     # 6. The record; fail clearly when the self-check says the SfM merged the wrong things.

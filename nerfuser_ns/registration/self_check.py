@@ -35,7 +35,7 @@ validation pair: the same gains within 0.3% from every pixel, every 2nd or every
 
 def _gray_block_mean(rgb: np.ndarray, factor: int) -> np.ndarray:
     """Luma (Rec. 601) of an RGB(A) image, or a grey image as it is, averaged over ``factor`` blocks."""
-    gray = rgb[..., :3] @ np.array([0.299, 0.587, 0.114], dtype=np.float32) if rgb.ndim == 3 else rgb
+    gray = appearance.luma(rgb) if rgb.ndim == 3 else rgb
     return block_mean(gray, factor)
 
 
@@ -223,6 +223,22 @@ def spanning_pairs(overlap: np.ndarray) -> list[tuple[int, int]]:
         pairs.append(tuple(sorted(best)))
         in_tree.add(best[1])
     return pairs
+
+
+def tree_edges(pairs: Sequence[tuple[int, int]], ref: int) -> list[tuple[int, int]]:
+    """The spanning tree's pairs as (parent, child), parents nearer the reference first (breadth-first)."""
+    edges, seen, frontier = [], {ref}, [ref]
+    while frontier:
+        nxt = []
+        for a in frontier:
+            for i, j in pairs:
+                b = j if i == a else i if j == a else None
+                if b is not None and b not in seen:
+                    seen.add(b)
+                    edges.append((a, b))
+                    nxt.append(b)
+        frontier = nxt
+    return edges
 
 
 def best_views(

@@ -45,11 +45,6 @@ def test_subsampled_intrinsics_keep_every_other_pixel_ray_for_ray():
     np.testing.assert_allclose(pixel_rays(c2w, xy_small, small), pixel_rays(c2w, xy_full, full), atol=1e-12)
 
 
-def test_tree_edges_run_breadth_first_from_the_reference():
-    assert direct.tree_edges([(0, 1), (1, 2), (1, 3)], ref=2) == [(2, 1), (1, 0), (1, 3)]
-    assert direct.tree_edges([(0, 1)], ref=0) == [(0, 1)]
-
-
 @pytest.fixture(scope="module")
 def oc_pair(oc_layout, oc_renderers, work):
     cfg = small_config()

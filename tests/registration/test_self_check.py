@@ -224,3 +224,10 @@ def test_register_refuses_an_sfm_whose_other_model_links_the_pair_otherwise(oc_r
     assert "direct" not in rejected  # ... and before the direct alignment's renders
     rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, model_check=False)
     assert rc == 0, err
+
+
+def test_tree_edges_run_breadth_first_from_the_reference():
+    from nerfuser_ns.registration.self_check import tree_edges
+
+    assert tree_edges([(0, 1), (1, 2), (1, 3)], ref=2) == [(2, 1), (1, 0), (1, 3)]
+    assert tree_edges([(0, 1)], ref=0) == [(0, 1)]
