@@ -519,7 +519,8 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     if reg_path.is_file():
         reg = read_registration(reg_path)
         record["registration"] = {"errors": _errors(reg, gt, "nerf_to_world"),
-                                  "sampling_choice": reg.get("sampling_choice"), "timings_s": reg.get("timings_s")}
+                                  "sampling_choice": reg.get("sampling_choice"), "timings_s": reg.get("timings_s"),
+                                  "direct_pairs": (reg.get("direct") or {}).get("pairs")}
         if all("nerf_to_world_optimized" in g for g in gt):
             record["registration"]["errors_optimized"] = _errors(reg, gt, "nerf_to_world_optimized")
     else:
@@ -768,8 +769,10 @@ def _direct_section(records: list[dict]) -> list[str]:
                "nerf_to_world_content": r["registration"].get("errors_content")}
         own_blends = {"stored": {"blend_psnr": r.get("blend_psnr")},
                       "content": r.get("truth_blends", {}).get("content_estimated")}
-        for setting, errors, blends in (("off" if d["label"] == "direct_on" else "on", own, own_blends),
-                                        ("on" if d["label"] == "direct_on" else "off", d["errors"], d["blends"])):
+        own_pairs = r["registration"].get("direct_pairs")
+        for setting, errors, blends, pairs in (
+                ("off" if d["label"] == "direct_on" else "on", own, own_blends, own_pairs),
+                ("on" if d["label"] == "direct_on" else "off", d["errors"], d["blends"], d.get("pairs"))):
             cells = []
             for k in keys:
                 e = (errors.get(k) or [None])[0]
@@ -778,10 +781,10 @@ def _direct_section(records: list[dict]) -> list[str]:
                 b = (blends.get(placement) or {}).get("blend_psnr")
                 cells.append("-" if not b else f"{b['idw_sample']:.2f} / {b['nearest']:.2f}")
             lines.append(f"| {r['case']} | {setting} | " + " | ".join(cells) + " |")
-        for p in d.get("pairs") or []:
-            c = p["change"]
-            lines.append(f"| | | {'kept' if p['used'] else 'not kept'}: {p['reason']}; {p['pixels']} pixels, "
-                         f"change {c['r_deg']:.4f} deg / {c['t']:.5f} / {c['s']:.5f} | | | | |")
+            for p in pairs or []:  # the direct alignment's own account, on the row that ran it
+                c = p["change"]
+                lines.append(f"| | | {'kept' if p['used'] else 'not kept'}: {p['reason']}; {p['pixels']} pixels, "
+                             f"change {c['r_deg']:.4f} deg / {c['t']:.5f} / {c['s']:.5f} | | | | |")
     return lines + ["", "r in degrees, t in the reference NeRF's units, s in log scale."]
 
 
