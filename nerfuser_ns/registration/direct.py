@@ -222,6 +222,7 @@ def align_pair(
     r0 = fun(np.zeros(7))
     scale = max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-4)
     fit = least_squares(fun, np.zeros(7), loss="soft_l1", f_scale=scale, diff_step=1e-2, max_nfev=cfg.max_evaluations)
+
     def cost(r):  # scipy's soft-L1, in units of the loss scale
         return float(np.mean(2 * (np.sqrt(1 + (r / scale) ** 2) - 1)))
 
