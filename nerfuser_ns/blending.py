@@ -23,6 +23,10 @@ Methods (``BlendMethod``)
 * ``"coverage"`` (ours, not the paper's): IDW-Sample with each merged sample's weights over NeRFs taken from how well
   each NeRF's training cameras saw it (:mod:`nerfuser_ns.coverage`, ``coverage_weights``) instead of from the
   distances to the NeRF origins. Without every NeRF's training cameras it is IDW-Sample.
+* ``"coverage-3d"`` (ours, not the paper's): IDW-3D's blend of each NeRF's own rendering per pixel, with weights from
+  each NeRF's coverage score at its own surface point (its median depth on the ray) instead of that point's distance
+  to its origin (``pixel_coverage_scores`` + ``coverage_weights``). Without every NeRF's training cameras it is
+  IDW-2D.
 
 The distance test (``distance_mask``) leaves out of every IDW method the NeRFs whose origin is more than ``tau``
 times as far from the camera as the nearest one's. For two NeRFs this is the paper's test (the ratio of the two
@@ -56,12 +60,16 @@ from nerfuser_ns.merging import (
 if TYPE_CHECKING:  # the settings value imports this module's method names
     from nerfuser_ns.blend_settings import BlendSettings
 
-BlendMethod = Literal["nerf", "nearest", "idw-2d", "idw-3d", "idw-sample", "coverage"]
+BlendMethod = Literal["nerf", "nearest", "idw-2d", "idw-3d", "idw-sample", "coverage", "coverage-3d"]
 """Blending methods of the paper's Table 2 (the plain NeRF, nearest NeRF, IDW-2D, IDW-3D and IDW-Sample) and ours,
-``coverage`` (IDW-Sample weighted by each NeRF's training-camera coverage)."""
+``coverage`` (IDW-Sample weighted by each NeRF's training-camera coverage) and ``coverage-3d`` (each NeRF's own
+rendering weighted by that coverage at its surface point)."""
 
 SAMPLE_METHODS: tuple[str, ...] = ("idw-sample", "coverage")
 """The methods that blend merged ray samples (the others blend per-NeRF renderings)."""
+
+COVERAGE_METHODS: tuple[str, ...] = ("coverage", "coverage-3d")
+"""The methods that need every NeRF's training cameras (ours)."""
 
 BLEND_METHODS: tuple[str, ...] = get_args(BlendMethod)
 PAPER_BLEND_METHODS: tuple[str, ...] = BLEND_METHODS[:5]
@@ -492,6 +500,27 @@ def sample_coverage_scores(
     return scores
 
 
+def pixel_coverage_scores(
+    cameras: Sequence[CameraIndex],
+    ray_origins: Float[Tensor, "num_rays 3"],
+    ray_directions: Float[Tensor, "num_rays 3"],
+    depths: Float[Tensor, "num_nerfs num_rays"],
+    pixel_widths: Float[Tensor, " num_rays"],
+    params: CoverageParams,
+    needed: Bool[Tensor, "num_nerfs num_rays"] | None = None,
+) -> Float[Tensor, "num_nerfs num_rays"]:
+    """Each NeRF's coverage score (cameras in the common frame) at its own surface point ``o + depths[i] d`` of
+    every ray (``coverage-3d``); candidate cameras chosen at that point. With ``needed``, only NeRF ``i``'s rays
+    ``needed[i]`` are scored, the others are 0."""
+    scores = depths.new_zeros(depths.shape)
+    for i, c in enumerate(cameras):
+        rows = slice(None) if needed is None else needed[i].nonzero()[:, 0]
+        t = depths[i, rows]
+        scores[i, rows] = coverage_scores(c, ray_origins[rows], ray_directions[rows], t[:, None], pixel_widths[rows],
+                                          params, t)[:, 0]  # fmt: skip
+    return scores
+
+
 def render_samples(
     weights: Float[Tensor, "*bs num_samples"],
     rgbs: Float[Tensor, "*bs num_samples 3"],
@@ -526,11 +555,11 @@ def blend(
     """Every blend method in ``methods`` on the same per-NeRF ray samples (common-frame distances): per method its
     ``rgb``, ``accumulation``, (median) ``depth``, ``expected_depth`` and per-NeRF ``share`` ``[num_nerfs, num_rays]``.
 
-    The distance test (``settings.tau``) applies to the IDW methods and ``coverage``; ``reference`` is the index
+    The distance test (``settings.tau``) applies to the IDW and coverage methods; ``reference`` is the index
     (among these NeRFs) that ``"nerf"`` shows. ``cameras`` are these NeRFs' training-camera indices in the common
-    frame and ``pixel_widths`` the rays' ``sqrt(pixel_area)``: ``coverage`` needs both and is IDW-Sample without
-    them (the caller warns). The reference functions above (``nearest_blend``, ``idw_2d``, ``idw_3d``,
-    ``idw_sample_blend``, ``coverage_weights``) are this entry's twins in the tests.
+    frame and ``pixel_widths`` the rays' ``sqrt(pixel_area)``: ``coverage`` and ``coverage-3d`` need both and are
+    IDW-Sample and IDW-2D without them (the caller warns). The reference functions above (``nearest_blend``,
+    ``idw_2d``, ``idw_3d``, ``idw_sample_blend``, ``coverage_weights``) are this entry's twins in the tests.
     """
     tau = settings.tau
     camera_d = camera_to_origin_distances(ray_origins, nerf_origins)  # [N, R]
@@ -600,11 +629,22 @@ def blend(
         assert per_nerf is not None
         rgb_i, acc_i, depth_i, exp_i = per_nerf
         surface_d = None
-        if method == "idw-3d":
-            pts = expected_points(ray_origins, ray_directions, exp_i)
-            surface_d = torch.linalg.vector_norm(pts - nerf_origins[:, None, :], dim=-1)
-        w = image_blend_weights(method, camera_d, settings.gamma, tau, surface_distances=surface_d,  # type: ignore[arg-type]
-                                reference=reference)  # fmt: skip
+        if method == "coverage-3d":
+            if cameras is None:  # the caller warned: IDW-2D, the image-level method with the same distance test
+                w = image_blend_weights("idw-2d", camera_d, settings.gamma, tau)
+            else:
+                if pixel_widths is None:
+                    raise ValueError("coverage-3d blending needs the rays' pixel widths (sqrt of pixel_area)")
+                # as for coverage: a ray's lone NeRF takes all the weight whatever its score
+                scores = pixel_coverage_scores(cameras, ray_origins, ray_directions, depth_i, pixel_widths,
+                                               settings.coverage, mask & (mask.sum(0) > 1))  # fmt: skip
+                w = coverage_weights(scores, camera_d, settings.gamma, mask)
+        else:
+            if method == "idw-3d":
+                pts = expected_points(ray_origins, ray_directions, exp_i)
+                surface_d = torch.linalg.vector_norm(pts - nerf_origins[:, None, :], dim=-1)
+            w = image_blend_weights(method, camera_d, settings.gamma, tau,  # type: ignore[arg-type]
+                                    surface_distances=surface_d, reference=reference)  # fmt: skip
         results[method] = {
             "rgb": blend_renders(rgb_i, w),
             "accumulation": (w * acc_i).sum(0),

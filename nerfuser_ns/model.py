@@ -11,14 +11,15 @@ Per ray batch (rays in the COMMON frame):
 2. each NeRF's sample intervals are converted back to common-frame ray distances (a NeRF with scale ``s`` in its
    SIM(3) has ``t_common = s * t_nerf`` for unit directions);
 3. the NeRFs are blended with the selected method (``nerf``, ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample``; ours:
-   ``coverage``, IDW-Sample weighted by each NeRF's training-camera coverage, :mod:`nerfuser_ns.coverage`), every
-   NeRF keeping its own background term (nerfacto "last_sample").
+   ``coverage``, IDW-Sample weighted by each NeRF's training-camera coverage, :mod:`nerfuser_ns.coverage`, and
+   ``coverage-3d``, each NeRF's own rendering weighted by that coverage at its surface point), every NeRF keeping its
+   own background term (nerfacto "last_sample").
 
 Appearance matching (ours, :mod:`nerfuser_ns.appearance`): each NeRF's sample and background colours go through its
 colour map to the reference capture's colours (from the registration file; identity when absent) before blending, when
-``appearance_matching`` is on (the default; the viewer has a checkbox for it). Training cameras (for ``coverage``)
-come from the registration file too, mapped once into the common frame; rendering never reads a dataset. Without them
-``coverage`` is IDW-Sample (one warning).
+``appearance_matching`` is on (the default; the viewer has a checkbox for it). Training cameras (for ``coverage`` and
+``coverage-3d``) come from the registration file too, mapped once into the common frame; rendering never reads a
+dataset. Without them ``coverage`` is IDW-Sample and ``coverage-3d`` IDW-2D (one warning).
 
 Frames: the sub-models never move; only rays do. ``pixel_area`` (the pixel footprint at unit ray distance, a solid
 angle) is invariant under a similarity: at distance ``t_nerf = t / s`` the footprint is ``pixel_area * t^2 / s^2``,
@@ -65,7 +66,7 @@ from nerfuser_ns.adapters import (
 )
 from nerfuser_ns.appearance import IDENTITY, apply_colour_map
 from nerfuser_ns.blend_settings import SHARE_PALETTE, BlendSettings
-from nerfuser_ns.blending import BLEND_METHODS, PAPER_OBJECT_CENTRIC, BlendMethod
+from nerfuser_ns.blending import BLEND_METHODS, COVERAGE_METHODS, PAPER_OBJECT_CENTRIC, BlendMethod
 from nerfuser_ns.coverage import CameraIndex, CoverageParams
 from nerfuser_ns.registration.record import TrainingCameras
 from nerfuser_ns.runs import load_run
@@ -137,8 +138,10 @@ class NerfuserModelConfig(ModelConfig):
     """Off: each sub-model applies its own collider in its own frame (what it would do itself). If the incoming
     rays already carry nears/fars, they are mapped into each NeRF's frame instead."""
     blend_method: BlendMethod = "idw-sample"
-    """``nerf`` (one NeRF), ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample`` (NeRFuser) or ``coverage`` (ours:
-    IDW-Sample weighted by each NeRF's training-camera coverage; IDW-Sample when a NeRF's cameras are unknown)."""
+    """``nerf`` (one NeRF), ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample`` (NeRFuser), ``coverage`` (ours:
+    IDW-Sample weighted by each NeRF's training-camera coverage; IDW-Sample when a NeRF's cameras are unknown) or
+    ``coverage-3d`` (ours: each NeRF's own rendering weighted by that coverage at its surface point; IDW-2D without
+    the cameras)."""
     gamma: float = PAPER_OBJECT_CENTRIC[0]
     """IDW blending rate (w ~ d^-gamma); 0: mean, inf: nearest. The paper uses 5 (objects), 10 (street)."""
     tau: float | None = PAPER_OBJECT_CENTRIC[1]
@@ -148,7 +151,8 @@ class NerfuserModelConfig(ModelConfig):
     reference_nerf: int = 0
     """The NeRF rendered by the ``nerf`` method."""
     coverage: CoverageParams = field(default_factory=CoverageParams)
-    """Constants of the ``coverage`` method: angular width, cameras per score, candidate cameras per ray."""
+    """Constants of the ``coverage`` and ``coverage-3d`` methods: angular width, cameras per score, candidate cameras
+    per ray."""
     appearance_matching: bool = True
     """Map each NeRF's colours to the reference capture's with its colour map from the registration file (ours; the
     identity where the file has none; False renders every NeRF as it is). Captures filmed at different exposure or
@@ -481,7 +485,7 @@ class NerfuserModel(Model):
         settings = self.blend_settings if n > 1 else self.blend_settings.replace(tau=None)
         ref = self.reference_nerf % n
         methods = self._methods()
-        cameras = self._coverage_cameras(ids) if "coverage" in methods else None
+        cameras = self._coverage_cameras(ids) if any(m in COVERAGE_METHODS for m in methods) else None
         pixel_widths = ray_bundle.pixel_area[..., 0].sqrt() if cameras is not None else None
         results = blending.blend(methods, starts_t, ends_t, p, c, bg, origins, directions, nerf_origins[ids],
                                  settings, reference=ids.index(ref) if ref in ids else 0, cameras=cameras,
@@ -507,14 +511,15 @@ class NerfuserModel(Model):
 
     def _coverage_cameras(self, ids: list[int]) -> list[CameraIndex] | None:
         """The training-camera indices of NeRFs ``ids`` on the model's device, or None (one warning per model) when
-        one of them has none: ``coverage`` is IDW-Sample then."""
+        one of them has none: ``coverage`` is IDW-Sample then, ``coverage-3d`` IDW-2D."""
         missing = [self.nerf_names[i] for i in ids if self.nerf_cameras[i] is None]
         if missing:
             if not self._coverage_warned:
                 self._coverage_warned = True
-                warnings.warn(f"nerfuser: blend method 'coverage' needs every NeRF's training cameras; {missing} have "
-                              "none in the registration file (registered before they were recorded, or their datasets "
-                              "were gone): IDW-Sample is used instead", stacklevel=2)  # fmt: skip
+                warnings.warn(f"nerfuser: blend methods 'coverage' and 'coverage-3d' need every NeRF's training "
+                              f"cameras; {missing} have none in the registration file (registered before they were "
+                              "recorded, or their datasets were gone): IDW-Sample and IDW-2D are used instead",
+                              stacklevel=2)  # fmt: skip
             return None
         device = self.nerf_origins.device
         if device not in self._cameras_on:

@@ -850,6 +850,10 @@ def write_coverage_report(records: list[dict], path: Path) -> None:
         d_sample = p["coverage"] - p["idw_sample"]
         lines.append(f"- {r['case']}: coverage - best IDW = {d_psnr:+.2f} dB (best: {best}); SSIM "
                      f"{d_ssim:+.4f}; against IDW-Sample {d_sample:+.2f} dB")  # fmt: skip
+        if p.get("coverage_3d") is not None:  # scored by fused runs made since coverage-3d exists
+            lines.append(f"- {r['case']}: coverage-3d - best IDW = {p['coverage_3d'] - p[best]:+.2f} dB; SSIM "
+                         f"{q['coverage_3d'] - max(q[k] for k in IDW_COLUMNS):+.4f}; against IDW-Sample "
+                         f"{p['coverage_3d'] - p['idw_sample']:+.2f} dB")  # fmt: skip
         if layout_of[r["case"]] == "object-centric":
             verdicts.append((f"{r['case']}: not below IDW-Sample by more than 0.05 dB", d_sample >= -0.05))
         else:

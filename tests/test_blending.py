@@ -3,9 +3,11 @@
 import math
 import time
 
+import numpy as np
 import pytest
 import torch
 
+from nerfuser_ns import sim3
 from nerfuser_ns.blend_settings import BlendSettings
 from nerfuser_ns.blending import (
     BLEND_METHODS,
@@ -31,6 +33,8 @@ from nerfuser_ns.coverage import CameraIndex, CoverageParams, coverage_scores
 from nerfuser_ns.merging import (
     MergedSamples,
     expected_depth,
+    last_sample_mids,
+    median_depth,
     merge_samples,
     merged_sample_distances,
     sample_distances,
@@ -439,7 +443,7 @@ def test_idw_3d():
 
 def test_image_blend_weights_and_methods():
     assert PAPER_BLEND_METHODS == ("nerf", "nearest", "idw-2d", "idw-3d", "idw-sample")
-    assert BLEND_METHODS == PAPER_BLEND_METHODS + ("coverage",)  # ours after the paper's
+    assert BLEND_METHODS == PAPER_BLEND_METHODS + ("coverage", "coverage-3d")  # ours after the paper's
     d = torch.tensor([2.0, 1.0])
     torch.testing.assert_close(image_blend_weights("nerf", d, 1.0, reference=0), torch.tensor([1.0, 0.0]))
     torch.testing.assert_close(image_blend_weights("nearest", d, 1.0), torch.tensor([0.0, 1.0]))
@@ -630,6 +634,98 @@ def test_blend_coverage_matches_its_twins_and_is_idw_sample_without_cameras(tau)
     for key in plain["idw-sample"]:
         assert torch.equal(plain["coverage"][key], plain["idw-sample"][key])
     assert not torch.allclose(out["rgb"], plain["idw-sample"]["rgb"])
+
+
+def _cameras_around(origins, gen, spread=2.0):
+    """A few cameras per NeRF around its origin, looking at the common origin (the rays' region)."""
+    cameras = []
+    for origin in origins:
+        centres = origin + torch.randn(5, 3, generator=gen, dtype=torch.float64) * spread
+        c2w = torch.stack([_look_at(c, torch.zeros(3, dtype=torch.float64)) for c in centres])
+        cameras.append(CameraIndex.from_cameras(c2w, [30.0, 30.0, 16.0, 12.0, 32.0, 24.0]))
+    return cameras
+
+
+@pytest.mark.parametrize("tau", [None, 1.5])
+def test_blend_coverage_3d_matches_its_twin_and_is_idw_2d_without_cameras(tau):
+    """``coverage-3d`` in ``blend``, ray by ray: each kept NeRF's coverage score at its own median-depth point
+    (candidates there), ``coverage_weights`` on those scores with the camera distances as the fallback, then the
+    weighted mean of the NeRFs' own renderings; a ray's lone kept NeRF takes it all."""
+    starts, ends, p, rgbs, bg, o, d, origins = _blend_inputs()
+    params = CoverageParams(sigma_deg=35.0, k=2, candidates=3)
+    cameras = _cameras_around(origins, torch.Generator().manual_seed(11))
+    pw = torch.full((40,), 0.02, dtype=torch.float64)
+    settings = BlendSettings(method="coverage-3d", gamma=3.0, tau=tau, coverage=params)
+    out = blend(["idw-2d", "coverage-3d"], starts, ends, p, rgbs, bg, o, d, origins, settings, cameras=cameras,
+                pixel_widths=pw)  # fmt: skip
+    cam_d = camera_to_origin_distances(o, origins)
+    keep = distance_mask(cam_d, tau)
+    rgb_i = render_samples(p, rgbs, bg).clamp(0, 1)
+    depth_i = median_depth(p, 0.5 * (starts + ends), last_sample_mids(starts, ends))
+    covered = 0
+    for ray in range(starts.shape[1]):
+        ids = keep[:, ray].nonzero()[:, 0]
+        sl = slice(ray, ray + 1)
+        t = depth_i[ids, sl]  # [n, 1]
+        scores = torch.stack([coverage_scores(cameras[int(i)], o[sl], d[sl], t[j][:, None], pw[sl], params, t[j])[:, 0]
+                              for j, i in enumerate(ids)])  # fmt: skip
+        if len(ids) > 1:
+            covered += int((scores > 0).any())
+        w = coverage_weights(scores, cam_d[ids, sl], 3.0) if len(ids) > 1 else torch.ones(1, 1, dtype=scores.dtype)
+        torch.testing.assert_close(out["coverage-3d"]["rgb"][sl], (w[..., None] * rgb_i[ids, sl]).sum(0))
+        torch.testing.assert_close(out["coverage-3d"]["share"][ids, ray], w[:, 0])
+        assert (out["coverage-3d"]["share"][~keep[:, ray], ray] == 0).all()
+    assert covered > 10  # the cameras see many of the points: the check is not the fallback alone
+    assert not torch.allclose(out["coverage-3d"]["rgb"], out["idw-2d"]["rgb"])
+    plain = blend(["idw-2d", "coverage-3d"], starts, ends, p, rgbs, bg, o, d, origins, settings)
+    for key in plain["idw-2d"]:
+        assert torch.equal(plain["coverage-3d"][key], plain["idw-2d"][key])
+
+
+def test_coverage_3d_prefers_the_nerf_whose_cameras_saw_its_surface_and_keeps_identical_nerfs_exact():
+    """Two NeRFs with the same samples and origin: the one whose training cameras stand by the query camera and look
+    along its rays takes the weight from one whose cameras look the other way; with the same cameras too, the blend
+    is the single NeRF's rendering (any weights of equal renders)."""
+    starts, ends, p, rgbs, bg, _, _, _ = _blend_inputs(n=1, r=12)
+    two = [torch.cat([x, x]) for x in (starts, ends, p, rgbs, bg)]
+    gen = torch.Generator().manual_seed(3)
+    o = torch.zeros(12, 3, dtype=torch.float64)
+    d = torch.nn.functional.normalize(torch.cat([0.2 * torch.randn(12, 2, generator=gen, dtype=torch.float64),
+                                                 torch.ones(12, 1, dtype=torch.float64)], dim=-1), dim=-1)  # fmt: skip
+    origins = torch.zeros(2, 3, dtype=torch.float64)  # same origin: only the cameras tell the NeRFs apart
+    centres = 0.05 * torch.randn(4, 3, generator=gen, dtype=torch.float64)
+    forward = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    seeing = torch.stack([_look_at(c, c + forward) for c in centres])
+    away = torch.stack([_look_at(c, c - forward) for c in centres])
+    intr = [30.0, 30.0, 16.0, 12.0, 32.0, 24.0]
+    pw = torch.full((12,), 0.02, dtype=torch.float64)
+    settings = BlendSettings(method="coverage-3d", gamma=5.0, tau=None, coverage=CoverageParams(k=2, candidates=4))
+    cams = [CameraIndex.from_cameras(seeing, intr), CameraIndex.from_cameras(away, intr)]
+    share = blend(["coverage-3d"], *two, o, d, origins, settings, cameras=cams, pixel_widths=pw)["coverage-3d"]["share"]
+    assert (share[0] > 0.99).all(), share
+    same = [CameraIndex.from_cameras(seeing, intr)] * 2
+    out = blend(["coverage-3d"], *two, o, d, origins, settings, cameras=same, pixel_widths=pw)["coverage-3d"]
+    torch.testing.assert_close(out["rgb"], render_samples(p, rgbs, bg).clamp(0, 1)[0])
+    torch.testing.assert_close(out["share"], torch.full((2, 12), 0.5, dtype=torch.float64))
+
+
+def test_coverage_3d_weights_are_invariant_to_a_similarity_of_everything():
+    """NeRFs, their cameras and the query rays moved by one SIM(3) together (distances scale, pixel widths are angles):
+    the same weights and colours."""
+    starts, ends, p, rgbs, bg, o, d, origins = _blend_inputs()
+    cameras = _cameras_around(origins, torch.Generator().manual_seed(11))
+    pw = torch.full((40,), 0.02, dtype=torch.float64)
+    settings = BlendSettings(method="coverage-3d", gamma=3.0, tau=1.5, coverage=CoverageParams(k=2, candidates=3))
+    before = blend(["coverage-3d"], starts, ends, p, rgbs, bg, o, d, origins, settings, cameras=cameras,
+                   pixel_widths=pw)["coverage-3d"]  # fmt: skip
+    s = 2.7
+    T = torch.tensor(sim3.make_sim3(sim3.random_rotation(np.random.default_rng(0)), np.array([3.0, -1.0, 0.5]), s))
+    A, t = T[:3, :3], T[:3, 3]
+    after = blend(["coverage-3d"], starts * s, ends * s, p, rgbs, bg, o @ A.T + t, d @ A.T / s, origins @ A.T + t,
+                  settings, cameras=[c.transformed(T) for c in cameras], pixel_widths=pw)["coverage-3d"]  # fmt: skip
+    assert (before["share"] > 0.01).sum(0).gt(1).sum() > 5  # blended rays, not only lone NeRFs
+    torch.testing.assert_close(after["share"], before["share"], atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(after["rgb"], before["rgb"], atol=1e-6, rtol=1e-5)
 
 
 def _look_at(centre, target):

@@ -205,7 +205,8 @@ def _cameras(*c2w: np.ndarray) -> CameraIndex:
 C2W_BEHIND = np.diag([1.0, -1.0, -1.0, 1.0]) @ C2W
 
 
-def test_coverage_gives_the_weight_to_the_nerf_whose_cameras_saw_the_view(pair):
+@pytest.mark.parametrize("method", ["coverage", "coverage-3d"])
+def test_coverage_gives_the_weight_to_the_nerf_whose_cameras_saw_the_view(pair, method):
     """Each NeRF's cameras in its own frame: one NeRF saw the scene from the query camera, the other only from
     behind. The one that saw it takes the pixel; IDW-Sample would share it."""
     fused, _ = pair
@@ -217,7 +218,7 @@ def test_coverage_gives_the_weight_to_the_nerf_whose_cameras_saw_the_view(pair):
     assert 0.05 < float(idw.mean()) < 0.95  # IDW-Sample shares the pixels: the check below is not vacuous
     for who in (0, 1):
         cams_a, cams_b = (seen[0], behind[1]) if who == 0 else (behind[0], seen[1])
-        two = fuse_models([("a", a, np.eye(4), cams_a), ("b", b, T_b, cams_b)], tau=None, blend_method="coverage")
+        two = fuse_models([("a", a, np.eye(4), cams_a), ("b", b, T_b, cams_b)], tau=None, blend_method=method)
         out = render(two, C2W, ("rgb", "share_0", "share_1"))
         assert float(out[f"share_{who}"].min()) > 0.95, who
         close(out["share_0"] + out["share_1"], torch.ones_like(out["share_0"]), 1e-5)
@@ -228,13 +229,20 @@ def test_coverage_without_cameras_is_idw_sample_with_one_warning(pair):
     (a, b), T_b = fused.nerfs.models, fused.nerf_to_common[1].double().numpy()
     # One NeRF without cameras is enough: scores of some NeRFs only cannot be compared.
     two = fuse_models([("a", a, np.eye(4), _cameras(C2W)), ("b", b, T_b)], tau=None, blend_method="coverage")
-    with pytest.warns(UserWarning, match=r"coverage.*\['b'\] have none.*IDW-Sample is used instead"):
+    with pytest.warns(UserWarning, match=r"coverage.*\['b'\] have none.*IDW-Sample and IDW-2D are used instead"):
         got = render(two, C2W, OUTPUTS + ("share_0",))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         render(two, C2W, ("rgb",))
     assert not [w for w in caught if "coverage" in str(w.message)]  # one warning per model, not one per batch
     two.blend_method = "idw-sample"
+    want = render(two, C2W, OUTPUTS + ("share_0",))
+    for key in want:
+        assert torch.equal(got[key], want[key]), key
+    # coverage-3d falls back to the image-level IDW-2D
+    two.blend_method = "coverage-3d"
+    got = render(two, C2W, OUTPUTS + ("share_0",))
+    two.blend_method = "idw-2d"
     want = render(two, C2W, OUTPUTS + ("share_0",))
     for key in want:
         assert torch.equal(got[key], want[key]), key

@@ -30,7 +30,7 @@ from torch import Tensor
 
 from nerfuser_ns import runs, runtime, sim3
 from nerfuser_ns.bench import metrics
-from nerfuser_ns.blending import PAPER_BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
+from nerfuser_ns.blending import COVERAGE_METHODS, PAPER_BLEND_METHODS, PAPER_MISSION_BAY, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.model import NerfuserModel, fuse_models, map_rays
 from nerfuser_ns.registration.record import TrainingCameras
@@ -210,10 +210,11 @@ def blend_metrics(
     colour_maps: Sequence[np.ndarray | None] | None = None,
 ) -> dict[str, dict[str, float]]:
     """PSNR/SSIM/LPIPS of every blend method on the given views, rendered in one pass (shared sub-model queries);
-    ``coverage`` (ours) needs the runs' ``nerf_cameras``; ``colour_maps`` (each NeRF's map to the reference's
-    colours) turn appearance matching (ours) on."""
-    if "coverage" in methods and nerf_cameras is None:
-        raise EvaluationError("blend method 'coverage' needs the runs' training cameras (nerf_cameras)")
+    ``coverage`` and ``coverage-3d`` (ours) need the runs' ``nerf_cameras``; ``colour_maps`` (each NeRF's map to the
+    reference's colours) turn appearance matching (ours) on."""
+    needs_cameras = [m for m in methods if m in COVERAGE_METHODS]
+    if needs_cameras and nerf_cameras is None:
+        raise EvaluationError(f"blend method {needs_cameras[0]!r} needs the runs' training cameras (nerf_cameras)")
     model = fused(
         models, transforms, nerf_cameras, colour_maps, gamma=gamma, tau=tau, reference_nerf=reference_nerf,
         render_all_methods=True, share_outputs=False, appearance_matching=colour_maps is not None,

@@ -20,7 +20,8 @@ from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration.record import write_registration
 
 BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
-                 ("idw_sample", "IDW-Sample"), ("coverage", "Coverage (ours)")]  # fmt: skip
+                 ("idw_sample", "IDW-Sample"), ("coverage", "Coverage (ours)"),
+                 ("coverage_3d", "Coverage-3D (ours)")]  # fmt: skip
 """``ns-eval``'s metric suffix and the report's column name of each blend method."""
 
 
