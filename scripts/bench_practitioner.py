@@ -124,7 +124,8 @@ class BenchPractitioner:
     so that training ends)."""
     stages: list[str] = field(default_factory=lambda: ["scene", "colmap", "train", "register", "fuse"])
     """Stages to run (each skipped when its output exists); ``cost`` (not a default) also times the fused model's
-    IDW-Sample and ``coverage`` passes against the sub-models on the rays they are queried on; ``content`` (not a
+    IDW-Sample, ``coverage`` and ``coverage-3d`` passes against the sub-models on the rays they are queried on;
+    ``content`` (not a
     default) registers each run to the ground-truth scene placed by the stored truth (:func:`stage_content`);
     ``matched`` / ``unmatched`` (not defaults) score the fused run again with appearance matching forced on / off
     (:func:`stage_appearance`); ``truth`` (not a default) blends with the true transforms instead of the estimated
@@ -467,7 +468,7 @@ def stage_direct(layout, case_dir: Path, gt: list[dict]) -> None:
         _fuse_on_test_views(layout, case_dir, output.name, sim3.invert_sim3(to_world[ref]), name)
 
 
-COST_METHODS = ("idw-sample", "coverage")
+COST_METHODS = ("idw-sample", "coverage", "coverage-3d")
 
 
 def stage_cost(layout, case_dir: Path) -> None:
@@ -865,8 +866,9 @@ def write_coverage_report(records: list[dict], path: Path) -> None:
                   "sub-models' own forward passes on the rays it queries them on.", ""]  # fmt: skip
         for r in costs:
             c = r["cost"]
+            c3 = f", coverage-3d {c['coverage-3d']['ratio_used']:.2f}x" if "coverage-3d" in c else ""
             lines.append(f"- {r['case']}: coverage {c['coverage']['ratio_used']:.2f}x, IDW-Sample "
-                         f"{c['idw-sample']['ratio_used']:.2f}x")  # fmt: skip
+                         f"{c['idw-sample']['ratio_used']:.2f}x{c3}")  # fmt: skip
             verdicts.append((f"{r['case']}: coverage cost <= 1.3x", c["coverage"]["ratio_used"] <= 1.3))
     both = [r for r in rows if len(appearance_evals(Path(r["case_dir"]))) == 2]
     if both:

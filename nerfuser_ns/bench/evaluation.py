@@ -360,7 +360,7 @@ def measure_render_cost(
     frame, and through each sub-model on just the rays the fused model queries it on. Each repeat runs every pass
     once, in a shuffled order (seeded); the ratios are medians of the per-repeat ratios. The first (warm-up,
     compilation) pass is not counted. Memory is measured in one more pass per full-chunk path, after the timing.
-    ``nerf_cameras``: the runs' training cameras (``coverage`` needs them; without them it is IDW-Sample)."""
+    ``nerf_cameras``: the runs' training cameras (``coverage`` and ``coverage-3d`` need them)."""
     # The allocator setting the memory sampler needs, from the start: every pass, timed or sampled, and every call
     # in a process then runs under the same one (set lazily, the first call's memory hid in glibc's cache).
     _return_freed_memory_to_os()
