@@ -125,8 +125,8 @@ class BenchPractitioner:
     stages: list[str] = field(default_factory=lambda: ["scene", "colmap", "train", "register", "fuse"])
     """Stages to run (each skipped when its output exists); ``cost`` (not a default) also times the fused model's
     IDW-Sample, ``coverage`` and ``coverage-3d`` passes against the sub-models on the rays they are queried on;
-    ``content`` (not a
-    default) registers each run to the ground-truth scene placed by the stored truth (:func:`stage_content`);
+    ``content`` (not a default) registers each run to the ground-truth scene placed by the stored truth
+    (:func:`stage_content`);
     ``matched`` / ``unmatched`` (not defaults) score the fused run again with appearance matching forced on / off
     (:func:`stage_appearance`); ``truth`` (not a default) blends with the true transforms instead of the estimated
     ones (:func:`stage_truth`); ``held-out`` (not a default) scores the blend on each capture's own held-out images,
