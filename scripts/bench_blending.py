@@ -44,8 +44,8 @@ class BenchBlendingConfig:
     quality: bool = True
     """Score the blend methods (--no-quality: only the render cost)."""
     coverage: bool = True
-    """Also score ``coverage`` (ours: IDW-Sample weighted by the runs' training-camera coverage) beside the paper's
-    methods; the runs' training cameras are read from their datasets (the scene's capture folders)."""
+    """Also score ``coverage`` and ``coverage-3d`` (ours: weighted by the runs' training-camera coverage) beside the
+    paper's methods; the runs' training cameras are read from their datasets (the scene's capture folders)."""
     gamma: float | None = None
     """Blending rate (None: the paper's value for the scene's layout)."""
     tau: float | None = None
@@ -90,7 +90,7 @@ def _markdown(report: dict) -> str:
             lines.append("| --- |" + " --- |" * len(labels))
         for m in s["quality"][labels[0]] if labels else ():
             cells = []
-            name = f"{m} (ours)" if m == "coverage" else m
+            name = f"{m} (ours)" if m.startswith("coverage") else m
             for lbl in labels:
                 q = s["quality"][lbl][m]
                 lp = f" / {q['lpips']:.3f}" if report["lpips_available"] else ""
@@ -160,7 +160,7 @@ def main(cfg: BenchBlendingConfig) -> None:
     from nerfuser_ns import runs, runtime
     from nerfuser_ns.bench import evaluation
     from nerfuser_ns.bench.evaluation import SceneRuns
-    from nerfuser_ns.blending import BLEND_METHODS, PAPER_BLEND_METHODS, PAPER_OBJECT_CENTRIC
+    from nerfuser_ns.blending import BLEND_METHODS, COVERAGE_METHODS, PAPER_BLEND_METHODS, PAPER_OBJECT_CENTRIC
     from nerfuser_ns.files import write_text_atomic
 
     console = Console()
@@ -208,7 +208,7 @@ def main(cfg: BenchBlendingConfig) -> None:
             transforms["estimated"] = evaluation.registered_transforms(registrations[scene.name], scene)
         quality = {}
         nerf_cameras = evaluation.training_cameras(scene, models) if cfg.coverage else None
-        methods = (*PAPER_BLEND_METHODS, "coverage") if cfg.coverage else PAPER_BLEND_METHODS
+        methods = (*PAPER_BLEND_METHODS, *COVERAGE_METHODS) if cfg.coverage else PAPER_BLEND_METHODS
         for label, T in transforms.items() if cfg.quality else ():
             quality[label] = evaluation.blend_metrics(
                 models, T, cams, target, gamma=gamma, tau=tau, methods=methods, nerf_cameras=nerf_cameras,
