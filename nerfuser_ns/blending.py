@@ -489,15 +489,9 @@ def sample_coverage_scores(
     mids = merged.midpoints
     middle = 0.5 * (merged.starts[..., 0] + merged.ends[..., -1])  # massless rays: the middle of the samples' range
     t_rep = torch.where(total > 0, (mass * mids).sum(-1) / torch.where(total > 0, total, 1.0), middle)
-    if needed is None:
-        return torch.stack([coverage_scores(c, ray_origins, ray_directions, ts, pixel_widths, params, t_rep)
-                            for c in cameras])  # fmt: skip
-    scores = ts.new_zeros((len(cameras),) + ts.shape)
-    for i, c in enumerate(cameras):
-        rows = needed[i].nonzero()[:, 0]
-        scores[i, rows] = coverage_scores(c, ray_origins[rows], ray_directions[rows], ts[rows], pixel_widths[rows],
-                                          params, t_rep[rows])  # fmt: skip
-    return scores
+    n = len(cameras)
+    return _coverage_scores_by_nerf(cameras, ray_origins, ray_directions, ts.expand(n, *ts.shape),
+                                    t_rep.expand(n, -1), pixel_widths, params, needed)  # fmt: skip
 
 
 def pixel_coverage_scores(
@@ -512,12 +506,27 @@ def pixel_coverage_scores(
     """Each NeRF's coverage score (cameras in the common frame) at its own surface point ``o + depths[i] d`` of
     every ray (``coverage-3d``); candidate cameras chosen at that point. With ``needed``, only NeRF ``i``'s rays
     ``needed[i]`` are scored, the others are 0."""
-    scores = depths.new_zeros(depths.shape)
+    return _coverage_scores_by_nerf(cameras, ray_origins, ray_directions, depths[..., None], depths, pixel_widths,
+                                    params, needed)[..., 0]  # fmt: skip
+
+
+def _coverage_scores_by_nerf(
+    cameras: Sequence[CameraIndex],
+    ray_origins: Float[Tensor, "num_rays 3"],
+    ray_directions: Float[Tensor, "num_rays 3"],
+    ts: Float[Tensor, "num_nerfs num_rays num_points"],
+    t_rep: Float[Tensor, "num_nerfs num_rays"],
+    pixel_widths: Float[Tensor, " num_rays"],
+    params: CoverageParams,
+    needed: Bool[Tensor, "num_nerfs num_rays"] | None,
+) -> Float[Tensor, "num_nerfs num_rays num_points"]:
+    """NeRF ``i``'s scores at the points ``ts[i]`` along the rays, candidate cameras chosen at ``t_rep[i]``; only the
+    rays ``needed[i]`` are scored (all without ``needed``), the others are 0."""
+    scores = ts.new_zeros(ts.shape)
     for i, c in enumerate(cameras):
         rows = slice(None) if needed is None else needed[i].nonzero()[:, 0]
-        t = depths[i, rows]
-        scores[i, rows] = coverage_scores(c, ray_origins[rows], ray_directions[rows], t[:, None], pixel_widths[rows],
-                                          params, t)[:, 0]  # fmt: skip
+        scores[i, rows] = coverage_scores(c, ray_origins[rows], ray_directions[rows], ts[i, rows], pixel_widths[rows],
+                                          params, t_rep[i, rows])  # fmt: skip
     return scores
 
 
