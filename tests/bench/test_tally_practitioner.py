@@ -56,14 +56,16 @@ def test_summary_against_another_truth_leaves_out_the_cases_without_it():
 def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_path):
     first, second = tmp_path / "bench_practitioner_a.json", tmp_path / "bench_practitioner_b.json"
     first.write_text(json.dumps([_record("street-1", 0.3), _record("object-centric-1", 0.08)]))
-    second.write_text(json.dumps([_record("street-1", 0.06), _record("room-3", 117.0, failure=True)]))
+    second.write_text(json.dumps([_record("street-1", 0.06, optimized=0.04), _record("room-3", 117.0, failure=True)]))
     rows = tally.collect([first, second])
     assert [(r["case"], src) for r, src in rows] == [("street-1", second), ("object-centric-1", first),
                                                      ("room-3", second)]  # fmt: skip
     out = tmp_path / "tally.md"
     tally.write_tally(rows, out)
     text = out.read_text()
-    assert "| street-1 | 0.0600 |" in text and "0.3000" not in text
+    assert "| street-1 | 0.0600 | 0.00600 | 0.00060 | ok | 0.0400 |" in text and "0.3000" not in text
+    assert "| room-3 | 117.0000 | 11.70000 | 1.17000 | FAIL | - |" in text
+    assert ("Against the camera-optimised truth, 1 case(s), 1 registered NeRF(s): median r_err 0.0400 deg" in text)
     assert "[bench_practitioner_b](bench_practitioner_b.md)" in text
     assert text.rstrip().endswith("3 case(s), 3 registered NeRF(s): median r_err 0.0800 deg, t_err 0.00800, "
                                   "s_err 0.00080; success rate 0.67.")  # fmt: skip
