@@ -31,7 +31,7 @@ from nerfuser_ns.registration.record import (
     training_cameras_of,
 )
 from nerfuser_ns.registration.render_cache import ViewSet
-from nerfuser_ns.registration.self_check import CrossRenderCheck, passed
+from nerfuser_ns.registration.self_check import CrossRenderCheck, camera_residuals, passed
 from nerfuser_ns.registration.sfm import SfMResult
 from nerfuser_ns.renderers import Renderer
 
@@ -78,11 +78,10 @@ def build_result(
     pairs = _pair_results(T_to_ref, overlap, checks, config)
     colours = colour_maps_to_reference(k, config.reference % k, checks)
     nerfs = []
-    for i, (r, vs, ne) in enumerate(zip(renderers, views, estimates, strict=True)):
+    residuals = camera_residuals(views, estimates, T_to_C)  # against the final transform (refined, aligned)
+    for i, (r, vs, ne, (rot, cen)) in enumerate(zip(renderers, views, estimates, residuals, strict=True)):
         est = ne.estimate
         registered = sum(1 for n, kept in zip(vs.image_names, vs.kept, strict=True) if kept and n in sfm.c2w)
-        # SfM cameras against the final transform (the refined one, when refined).
-        rot, cen = sim3.pose_residuals(T_to_C[i], vs.c2w[est.used], ne.G_sfm[est.used])
         config_path = getattr(r, "config_path", None)
         nerfs.append(NerfResult(
             name=r.name,

@@ -34,10 +34,11 @@ from nerfuser_ns.registration.config import (
     RegistrationConfig,
     RegistrationError,
     RegistrationFailed,
+    json_float,
     validate_settings,
 )
 from nerfuser_ns.registration.direct import align_direct
-from nerfuser_ns.registration.estimate import estimate_transforms
+from nerfuser_ns.registration.estimate import NerfEstimate, estimate_transforms
 from nerfuser_ns.registration.graph import register_graph
 from nerfuser_ns.registration.known_geometry import (
     joint_solve,
@@ -58,6 +59,7 @@ from nerfuser_ns.registration.record import RegistrationResult, work_dir_for, wr
 from nerfuser_ns.registration.reference_colour import compose_with_reference, reference_colour
 from nerfuser_ns.registration.refine import refine_on_matches, refine_transforms
 from nerfuser_ns.registration.render_cache import (
+    ViewSet,
     check_inputs,
     check_kept_views,
     render_views_cached,
@@ -66,6 +68,7 @@ from nerfuser_ns.registration.self_check import (
     CrossRenderCheck,
     best_views,
     camera_failure,
+    camera_residuals,
     covisibility,
     cross_render_check,
     failure_message,
@@ -264,18 +267,21 @@ def register_once(
     overlap = covisibility(views, sfm)  # between NeRFs: 3D points seen by both
     tree = spanning_pairs(overlap)  # the pairs the direct alignment aligns and the self-check checks
     order = best_views(views, sfm, tree)
-    # 5a. Other SfM models against the solution (no renders: before the direct alignment's, which a link they refuse
-    # would waste; its changes stay far inside their 5-degree rule)
-    models = model_failure(views, sfm, T_to_ref, config) if config.model_check else None
+    # 5a. The checks that need no renders: each NeRF's SfM cameras, then the other SfM models, against the solution.
+    # Before the direct alignment and the self-check, whose renders a link they refuse would waste (the alignment's
+    # changes stay far inside their 5-degree rule; the cameras are checked again against the final transform).
+    early = camera_failure_of(views, estimates, T_to_C, T_to_ref, [r.name for r in renderers], config)
+    models = model_failure(views, sfm, T_to_ref, config) if config.model_check and early is None else None
+    refused = early or models
     direct = None
-    if config.direct.enabled and models is None:  # 4b. direct alignment of the tree's pairs
+    if config.direct.enabled and refused is None:  # 4b. direct alignment of the tree's pairs
         t0 = time.perf_counter()
         T_to_ref, direct = align_direct(renderers, views, T_to_ref, tree, ref, intr, config.direct, order, console)
         T_to_C = T_to_C[ref] @ T_to_ref
         timings["direct"] = time.perf_counter() - t0
 
-    # 5b. The cross-render self-check (not rendered when the models already refuse the solution).
-    checked_pairs = tree if config.self_check_views > 0 and models is None else []
+    # 5b. The cross-render self-check (not rendered when the cameras or the models already refuse the solution).
+    checked_pairs = tree if config.self_check_views > 0 and refused is None else []
     t0 = time.perf_counter()
     with console.status("self-check: cross-rendering NeRF pairs"):
         checks = cross_render_check(renderers, views, T_to_ref, checked_pairs, intr, config, order)
@@ -300,8 +306,25 @@ def check_failure(
     """Why the solution cannot be trusted, in one line (cameras that contradict their transform, other SfM models
     that link the NeRFs otherwise (``models``, :func:`model_failure`'s line), then a failed cross-render self-check),
     or None."""
-    cameras = camera_failure(result.nerfs, config) if config.camera_check else None
+    cameras = None
+    if config.camera_check:
+        cameras = camera_failure([n.name for n in result.nerfs], [n.scale_to_reference for n in result.nerfs],
+                                 [n.residuals.rotation_deg_median for n in result.nerfs],
+                                 [n.residuals.centre_median for n in result.nerfs], config)  # fmt: skip
     return cameras or models or failure_message(checks, [n.name for n in result.nerfs], config)
+
+
+def camera_failure_of(
+    views: Sequence[ViewSet], estimates: Sequence[NerfEstimate], T_to_C: np.ndarray, T_to_ref: np.ndarray,
+    names: Sequence[str], config: RegistrationConfig,
+) -> str | None:
+    """:func:`camera_failure` of the SfM cameras against transforms not yet in a result (None when the check is off)."""
+    if not config.camera_check:
+        return None
+    residuals = camera_residuals(views, estimates, T_to_C)
+    scales = [float(sim3.decompose_sim3(T)[2]) for T in T_to_ref]
+    return camera_failure(names, scales, [json_float(np.median(rot)) for rot, _ in residuals],
+                          [json_float(np.median(cen)) for _, cen in residuals], config)  # fmt: skip
 
 
 MIN_DEPTH_SIGMA = 1e-4

@@ -3,8 +3,9 @@ wrong model).
 
 For a spanning tree of NeRF pairs (i, j) chosen by their SfM overlap: views of i are mapped through the solution
 into j's frame, rendered by j, and compared with i's own renders by normalised cross-correlation (and back). Before
-it, each NeRF's SfM cameras are checked against its final transform (:func:`camera_failure`), and the SfM's other
-models that link the same NeRFs against the registration's link (:func:`model_failure`).
+it, and before the direct alignment's renders, each NeRF's SfM cameras are checked against its transform
+(:func:`camera_failure`), and the SfM's other models that link the same NeRFs against the registration's link
+(:func:`model_failure`); the cameras again against the final transform.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 from jaxtyping import Float
@@ -20,13 +20,10 @@ from jaxtyping import Float
 from nerfuser_ns import appearance, sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.config import RegistrationConfig, RegistrationError, suggestion
-from nerfuser_ns.registration.estimate import estimate_transform
+from nerfuser_ns.registration.estimate import NerfEstimate, estimate_transform
 from nerfuser_ns.registration.render_cache import ViewSet, to_uint8
 from nerfuser_ns.registration.sfm import SfMResult, other_models
 from nerfuser_ns.renderers import Renderer
-
-if TYPE_CHECKING:  # record.py's types, for annotations only
-    from nerfuser_ns.registration.record import NerfResult
 
 COLOUR_REDUCE = 2
 """The colour fit renders its views at 1/COLOUR_REDUCE of the size: its sums need views, not pixels (measured on the
@@ -261,25 +258,40 @@ def passed(check: CrossRenderCheck, config: RegistrationConfig) -> bool:
     return bool(np.isfinite(check.score) and check.score >= config.ncc_threshold)
 
 
-def camera_failure(nerfs: Sequence[NerfResult], config: RegistrationConfig) -> str | None:
-    """The one-line error for the first NeRF whose SfM cameras disagree with its final transform beyond the paper's
-    failure rule (:func:`sim3.is_failure` on the medians over its cameras, centres in reference units), else None.
+def camera_residuals(
+    views: Sequence[ViewSet], estimates: Sequence[NerfEstimate], T_to_C: Float[np.ndarray, "k 4 4"]
+) -> list[tuple[Float[np.ndarray, " m"], Float[np.ndarray, " m"]]]:
+    """Per NeRF, its SfM cameras against its transform into the SfM frame: the rotation (deg) and centre (its units)
+    residual of each camera its estimate used."""
+    return [sim3.pose_residuals(T_to_C[i], vs.c2w[ne.estimate.used], ne.G_sfm[ne.estimate.used])
+            for i, (vs, ne) in enumerate(zip(views, estimates, strict=True))]  # fmt: skip
+
+
+def camera_failure(
+    names: Sequence[str],
+    scales: Sequence[float],
+    rotation_deg: Sequence[float | None],
+    centre: Sequence[float | None],
+    config: RegistrationConfig,
+) -> str | None:
+    """The one-line error for the first NeRF whose SfM cameras disagree with its transform beyond the paper's failure
+    rule (:func:`sim3.is_failure` on the medians over its cameras, ``rotation_deg`` and ``centre`` per NeRF, centres in
+    its units and ``scales`` its scale to the reference), else None.
 
     The estimate follows the cameras, so only a refinement that followed points seen across NeRFs against them (or
     cameras that disagree among themselves) gets here: one of the two links unrelated content. Modes without SfM
-    cameras have no residuals and pass.
+    cameras have no residuals (None) and pass.
     """
-    for n in nerfs:
-        rot, centre = n.residuals.rotation_deg_median, n.residuals.centre_median
-        if rot is None or centre is None:
+    for name, scale, rot, cen in zip(names, scales, rotation_deg, centre, strict=True):
+        if rot is None or cen is None:
             continue
-        centre_ref = centre * n.scale_to_reference
+        centre_ref = cen * scale
         if sim3.is_failure(rot, centre_ref, 0.0):
             why = "its cameras disagree among themselves"
             if config.refine:
                 why = "the bundle adjustment followed points seen across NeRFs that its cameras contradict"
             return (
-                f"{n.name}: its SfM cameras disagree with its registered transform by {rot:.1f} deg and "
+                f"{name}: its SfM cameras disagree with its registered transform by {rot:.1f} deg and "
                 f"{centre_ref:.3f} reference units (median; the paper's failure rule: 5 deg, 0.2): {why}, so the SfM "
                 f"probably merged unrelated content; {suggestion(config.sampling.source)} (or --no-camera-check to "
                 f"keep it)"

@@ -17,7 +17,6 @@ from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.registration import pipeline as reg_pipeline
-from nerfuser_ns.registration.config import DirectConfig
 from nerfuser_ns.renderers import RenderBatch
 
 
@@ -109,12 +108,14 @@ def test_cameras_that_contradict_the_refined_transform_are_refused(oc_renderers,
     # The pair of benchmarks that passed the self-check 13 deg wrong had its refinement 9.2 deg from its cameras.
     assert max(n["residuals"]["rotation_deg_median"] for n in oc_record["nerfs"]) < 0.5  # the correct pair: passes
     _refinement_turned(monkeypatch, 9.0)
-    # the direct alignment after it would pull a turned transform back a little (8.8 deg): the check alone here
-    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, direct=DirectConfig(enabled=False))
+    # every default: the check refuses the link before the direct alignment (which would pull a turned transform back
+    # a little, to 8.8 deg) and before the cross-renders, so a refused link costs no renders
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work)
     assert_one_line_error(rc, out, err, "capture_b: its SfM cameras disagree with its registered transform by 9.0 deg",
                           "--no-camera-check")
     rejected = json.loads((work / "rejected_registration.json").read_text())
     assert rejected["nerfs"][1]["residuals"]["rotation_deg_median"] == pytest.approx(9.0, abs=0.3)
+    assert "direct" not in rejected and rejected["pairs"][0]["self_check"] is None
     # 4 deg is within the paper's failure rule: the camera check passes it (the cross-render check judges it)
     _refinement_turned(monkeypatch, 4.0)
     rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, self_check_views=0)
@@ -125,20 +126,16 @@ def test_cameras_that_contradict_the_refined_transform_are_refused(oc_renderers,
                          [(0.3, 0.01, 1.0, False), (5.5, 0.01, 1.0, True), (0.3, 0.3, 1.0, True),
                           (0.3, 0.3, 0.5, False), (None, None, 1.0, False)])
 def test_the_camera_check_applies_the_failure_rule_in_reference_units(rotation, centre, scale, fails):
-    from types import SimpleNamespace
-
     from nerfuser_ns.registration.self_check import camera_failure
 
-    nerf = SimpleNamespace(name="b", scale_to_reference=scale,
-                           residuals=SimpleNamespace(rotation_deg_median=rotation, centre_median=centre))
-    ok = SimpleNamespace(name="a", scale_to_reference=1.0,
-                         residuals=SimpleNamespace(rotation_deg_median=0.1, centre_median=0.0))
-    message = camera_failure([ok, nerf], reg.RegistrationConfig())
+    # NeRF "a" passes; "b" has the residual medians of the case
+    message = camera_failure(["a", "b"], [1.0, scale], [0.1, rotation], [0.0, centre], reg.RegistrationConfig())
     assert (message is not None) == fails
     if fails:
         assert message.startswith("b: its SfM cameras disagree")
         assert "bundle adjustment" in message  # the likely cause: without refinement, cameras among themselves
-        assert "among themselves" in camera_failure([nerf], reg.RegistrationConfig(refine=False))
+        alone = camera_failure(["b"], [scale], [rotation], [centre], reg.RegistrationConfig(refine=False))
+        assert "among themselves" in alone
 
 
 @pytest.mark.parametrize("mode", ["sfm", "known-geometry", "graph"])
