@@ -99,6 +99,10 @@ TRAIN_OPTIONS = [
 """CPU-sized nerfacto through ns-train's own options (hash grid, MLP widths and samples as our CPU preset);
 everything else (camera optimiser, parallel datamanager, scene contraction, losses) is stock nerfacto."""
 
+REJECTED = "{case_dir}/registration_rejected.json"
+"""A refused registration's solution (``ns-nerfuser-register`` keeps it as its work folder's
+``rejected_registration.json``), copied into the case folder and scored: never a result, a diagnostic."""
+
 STOCK_OPTIONS = ["--vis", "tensorboard"]
 """Stock nerfacto on the GPU: the viewer (ns-train's default) would keep the process alive after training."""
 
@@ -281,12 +285,17 @@ def stage_register(layout, case_dir: Path) -> None:
     log = case_dir / "register.log"
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     write_text_atomic(case_dir / "register_commit.txt", (commit or "unknown") + "\n")
+    start = time.perf_counter()
     try:
         seconds = _run(cmd, log)
     except RuntimeError as e:
-        # A refused registration is a result (a failure), not a crash of the benchmark.
+        # A refused registration is a result (a failure), not a crash of the benchmark; the refused solution is kept
+        # beside it (the work folder's copy is overwritten by later registrations) and scored by score_case.
         CONSOLE.print(f"[red]{case_dir.name}: registration failed[/]: {str(e).splitlines()[-1]}")
-        _add_time(case_dir, "register", 0.0)
+        _add_time(case_dir, "register", time.perf_counter() - start)
+        rejected = case_dir / "registration_work" / "rejected_registration.json"
+        if rejected.is_file():
+            shutil.copyfile(rejected, REJECTED.format(case_dir=case_dir))
         write_text_atomic(case_dir / "register_failed.txt", str(e) + "\n")
         return
     _add_time(case_dir, "register", seconds)
@@ -526,6 +535,12 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
             record["registration"]["errors_optimized"] = _errors(reg, gt, "nerf_to_world_optimized")
     else:
         record["registration"] = {"errors": None, "refused": (case_dir / "register_failed.txt").is_file()}
+        rejected = Path(REJECTED.format(case_dir=case_dir))
+        if rejected.is_file():  # the solution the checks refused, against the same truth
+            rej = read_registration(rejected)
+            record["registration"].update(rejected_errors=_errors(rej, gt, "nerf_to_world"),
+                                          rejected_mode=rej["settings"]["mode"],
+                                          sampling_choice=rej.get("sampling_choice"))  # fmt: skip
     eval_json = case_dir / "eval.json"
     if eval_json.is_file():
         record["fused_appearance_matching"] = fused_appearance_matching(case_dir)
@@ -642,6 +657,10 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         errs = r["registration"]["errors"]
         if errs is None:
             lines.append(f"| {r['case']} | - | refused | | | FAIL | {col} | {cen} | {bend} | {posed} |")
+            for e in r["registration"].get("rejected_errors") or []:
+                lines.append(f"| {r['case']} (the refused solution, mode {r['registration']['rejected_mode']}) | "
+                             f"{_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | {e['s_err']:.5f} | "
+                             f"refused | {col} | {cen} | {bend} | {posed} |")  # fmt: skip
             continue
         for e in errs:
             lines.append(f"| {r['case']} | {_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | "

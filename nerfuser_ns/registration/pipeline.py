@@ -184,10 +184,14 @@ def register(
         console.print(f"pose sampling: [bold]{sc.source}[/]{mode} ({choice.reason}), renders {sc.width}x{sc.height} "
                       f"at {sc.fov_deg:.1f} deg")  # fmt: skip
         start = time.perf_counter()
+        record_choice = {"requested": config.sampling.source, "source": sc.source, "mode": choice.config.mode,
+                         "reason": choice.reason, "tried_before": tried}  # fmt: skip
         try:
             result = register_once(renderers, choice.config, work_dir, console)
         except RegistrationError as e:
             if n + 1 == len(choices):
+                if isinstance(e, RegistrationFailed):  # the rejected record says what was tried before it
+                    e.result.sampling_choice = record_choice
                 raise
             reason = str(e).splitlines()[0]
             seconds = round(time.perf_counter() - start, 1)  # its renders and SfM, which the record keeps no other way
@@ -195,9 +199,7 @@ def register(
             console.print(f"[yellow]{sc.source} poses did not register ({choice.config.mode}, {seconds:.0f} s): "
                           f"{reason}[/]")  # fmt: skip
             continue
-        result.sampling_choice = {"requested": config.sampling.source, "source": sc.source,
-                                  "mode": choice.config.mode, "reason": choice.reason,
-                                  "tried_before": tried}  # fmt: skip
+        result.sampling_choice = record_choice
         if config.reference_colour and config.colour_views > 0:
             match_reference_colours(result, renderers[result.reference], config.colour_views, console)
         return result

@@ -221,6 +221,20 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     monkeypatch.setattr(reg_pipeline, "register_once", lambda *a: (_ for _ in ()).throw(reg.RegistrationError("no")))
     with pytest.raises(reg.RegistrationError, match="no"):
         reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
+    # every choice refused by a check: the refused solution (kept as rejected_registration.json) says what ran before it
+    rejected = SimpleNamespace(sampling_choice=None)
+
+    def refused(renderers, config, work_dir, console):
+        raise reg.RegistrationFailed(f"{config.sampling.source}/{config.mode}: self-check failed", rejected)
+
+    monkeypatch.setattr(reg_pipeline, "register_once", refused)
+    with pytest.raises(reg.RegistrationFailed, match="both/known-geometry: self-check failed") as failed:
+        reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
+    choice = failed.value.result.sampling_choice
+    assert (choice["source"], choice["mode"]) == ("both", "known-geometry")
+    assert [(t["source"], t["mode"]) for t in choice["tried_before"]] == [("training", "sfm"), ("both", "sfm"),
+                                                                          ("hemisphere", "sfm")]
+    assert choice["tried_before"][0]["error"] == "training/sfm: self-check failed"
 
 
 # ---------------------------------------------------------------------------------------------------------------------
