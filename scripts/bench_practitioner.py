@@ -285,7 +285,7 @@ def stage_register(layout, case_dir: Path) -> None:
     log = case_dir / "register.log"
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     write_text_atomic(case_dir / "register_commit.txt", (commit or "unknown") + "\n")
-    start = time.perf_counter()
+    start, started_at = time.perf_counter(), time.time()
     try:
         seconds = _run(cmd, log)
     except RuntimeError as e:
@@ -294,7 +294,7 @@ def stage_register(layout, case_dir: Path) -> None:
         CONSOLE.print(f"[red]{case_dir.name}: registration failed[/]: {str(e).splitlines()[-1]}")
         _add_time(case_dir, "register", time.perf_counter() - start)
         rejected = case_dir / "registration_work" / "rejected_registration.json"
-        if rejected.is_file():
+        if rejected.is_file() and rejected.stat().st_mtime >= started_at:  # this run's, not an earlier one's
             shutil.copyfile(rejected, REJECTED.format(case_dir=case_dir))
         write_text_atomic(case_dir / "register_failed.txt", str(e) + "\n")
         return
