@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -172,20 +173,19 @@ def test_a_refused_registration_is_timed_and_keeps_this_runs_refused_solution(lo
     os.utime(stale, (0, 0))
 
     def refused(cmd, log, cwd=None, solution=True):
+        time.sleep(0.2)  # the attempt's own time, which the stage must record
         if solution:
             (work / "rejected_registration.json").write_text('{"from": "this run"}')
         raise RuntimeError("ns-nerfuser-register failed (exit 1)\nerror: self-check failed")
 
     monkeypatch.setattr(bench, "_run", refused)
-    monkeypatch.setattr(bench.time, "perf_counter", iter([10.0, 52.5]).__next__)  # the attempt took 42.5 s
     bench.stage_register(layout, tmp_path)
-    assert json.loads((tmp_path / "times.json").read_text())["register"] == 42.5
+    assert json.loads((tmp_path / "times.json").read_text())["register"] >= 0.2
     assert json.loads(Path(bench.REJECTED.format(case_dir=tmp_path)).read_text()) == {"from": "this run"}
     assert "self-check failed" in (tmp_path / "register_failed.txt").read_text()
     # a refusal that wrote no solution (e.g. too few views) leaves the earlier run's file where it is
     Path(bench.REJECTED.format(case_dir=tmp_path)).unlink()
     os.utime(work / "rejected_registration.json", (0, 0))
     monkeypatch.setattr(bench, "_run", lambda cmd, log, cwd=None: refused(cmd, log, solution=False))
-    monkeypatch.setattr(bench.time, "perf_counter", iter([0.0, 1.0]).__next__)
     bench.stage_register(layout, tmp_path)
     assert not Path(bench.REJECTED.format(case_dir=tmp_path)).exists()
