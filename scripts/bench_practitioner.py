@@ -63,6 +63,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     held_out_fused_config,
     images_done,
     registration_with_transforms,
+    rejected_registration,
     run_config,
     share_captures,
     summarise,
@@ -98,10 +99,6 @@ TRAIN_OPTIONS = [
 ]  # fmt: skip
 """CPU-sized nerfacto through ns-train's own options (hash grid, MLP widths and samples as our CPU preset);
 everything else (camera optimiser, parallel datamanager, scene contraction, losses) is stock nerfacto."""
-
-REJECTED = "{case_dir}/registration_rejected.json"
-"""A refused registration's solution (``ns-nerfuser-register`` keeps it as its work folder's
-``rejected_registration.json``), copied into the case folder and scored: never a result, a diagnostic."""
 
 STOCK_OPTIONS = ["--vis", "tensorboard"]
 """Stock nerfacto on the GPU: the viewer (ns-train's default) would keep the process alive after training."""
@@ -295,7 +292,7 @@ def stage_register(layout, case_dir: Path) -> None:
         _add_time(case_dir, "register", time.perf_counter() - start)
         rejected = case_dir / "registration_work" / "rejected_registration.json"
         if rejected.is_file() and rejected.stat().st_mtime >= started_at:  # this run's, not an earlier one's
-            shutil.copyfile(rejected, REJECTED.format(case_dir=case_dir))
+            shutil.copyfile(rejected, rejected_registration(case_dir))
         write_text_atomic(case_dir / "register_failed.txt", str(e) + "\n")
         return
     _add_time(case_dir, "register", seconds)
@@ -535,7 +532,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
             record["registration"]["errors_optimized"] = _errors(reg, gt, "nerf_to_world_optimized")
     else:
         record["registration"] = {"errors": None, "refused": (case_dir / "register_failed.txt").is_file()}
-        rejected = Path(REJECTED.format(case_dir=case_dir))
+        rejected = rejected_registration(case_dir)
         if rejected.is_file():  # the solution the checks refused, against the same truth
             rej = read_registration(rejected)
             record["registration"].update(rejected_errors=_errors(rej, gt, "nerf_to_world"),

@@ -6,9 +6,19 @@ alone), exactly as ``ns-nerfuser-register``'s self-check does, and the NCC is re
 every score of a transform the paper counts as a failure (r > 5 deg, t > 0.2, s > 0.1) and below the scores of
 accurate ones; the report states both bounds.
 
+Scenes are generated scenes with runs trained on them (``--scenes``, truth from ``ground_truth.json``) or cases of
+the practitioner's benchmark (``--cases``: COLMAP-posed captures and stock nerfacto runs, truth through each
+capture's COLMAP tie as ``scripts/bench_practitioner.py`` scores it; the case's own registration, or the solution the
+checks refused, is cross-rendered too, beside the truth's perturbations). ``--view-choice nearest`` checks each NeRF
+on its views nearest the other NeRF's cameras (under the truth), as the registration checks the views that share the
+most SfM points with the other NeRF; on a drive, whose captures overlap only at their ends, evenly spread views
+mostly see what the other NeRF never saw.
+
 Example:
     python scripts/calibrate_ncc.py --scenes demo=demo/scene:demo/runs \\
         oc1=outputs/bench/scenes/object-centric-1:outputs/bench/runs/object-centric-1
+    python scripts/calibrate_ncc.py --scenes --cases drive:5=outputs/practitioner/drive-5 --view-choice nearest \\
+        --output reports/ncc_calibration_drive5.json
 """
 
 from __future__ import annotations
@@ -20,8 +30,23 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
+import numpy as np
 import tyro
+from rich.console import Console
+
+from nerfuser_ns import registration, sim3
+from nerfuser_ns.bench.evaluation import SceneRuns
+from nerfuser_ns.bench.practitioner_cases import (
+    capture_ground_truth,
+    case_layout,
+    rejected_registration,
+    run_config,
+)
+from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig, read_registration
+from nerfuser_ns.renderers import NerfstudioRenderer
 
 # fmt: off
 PERTURBATIONS: list[tuple[str, float]] = [
@@ -40,7 +65,13 @@ class CalibrateNccConfig:
     """Cross-render NCC of real NeRFs under exact and perturbed transforms."""
 
     scenes: list[str] = field(default_factory=lambda: ["demo=demo/scene:demo/runs"])
-    """Scenes as NAME=SCENE_DIR:RUNS_DIR."""
+    """Scenes as NAME=SCENE_DIR:RUNS_DIR (none: ``--scenes`` alone)."""
+    cases: list[str] = field(default_factory=list)
+    """Practitioner cases as LAYOUT:SEED=CASE_DIR (``scripts/bench_practitioner.py``'s case folders, trained)."""
+    truth: Literal["stored", "optimized"] = "stored"
+    """Cases: the truth through the captures' stored (COLMAP) poses, or through their camera-optimised ones."""
+    view_choice: Literal["spread", "nearest"] = "spread"
+    """Views checked per direction: evenly spread over the NeRF's views, or those nearest the other NeRF's cameras."""
     poses: int = 48
     """Training poses per NeRF (the registration's --sampling.max-training-poses)."""
     width: int = 192
@@ -57,20 +88,27 @@ class CalibrateNccConfig:
     """JSON results (a markdown summary is written beside it)."""
 
 
-def perturb(T, kind: str, size: float, rng):  # noqa: ANN001, ANN201
-    import numpy as np
+@dataclass
+class Subject:
+    """NeRFs to cross-render: their runs, the true transforms into the first one's frame, and other transforms to
+    score beside the truth's perturbations (a registration's solution)."""
 
-    from nerfuser_ns import sim3
+    name: str
+    captures: list[str]
+    renderers: list[NerfstudioRenderer]
+    truth: list[np.ndarray]
+    solutions: dict[str, list[np.ndarray]] = field(default_factory=dict)
 
+
+def perturb(T: np.ndarray, kind: str, size: float, rng: np.random.Generator) -> np.ndarray:
+    """``T`` moved by a rotation about the NeRF's own origin, a translation or a scale about it of ``size``."""
     if kind == "none":
         return T
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     if kind == "rotation_deg":
-        from scipy.spatial.transform import Rotation
-
-        R = Rotation.from_rotvec(np.deg2rad(size) * axis).as_matrix()
-        # rotate about the NeRF's own origin (in the reference frame), so the translation error stays 0
+        R = sim3.so3_exp(np.deg2rad(size) * axis)
+        # about the NeRF's own origin (in the reference frame), which stays where it was
         D = sim3.make_sim3(R, T[:3, 3] - R @ T[:3, 3], 1.0)
     elif kind == "translation":
         D = sim3.make_sim3(np.eye(3), size * axis, 1.0)
@@ -81,51 +119,84 @@ def perturb(T, kind: str, size: float, rng):  # noqa: ANN001, ANN201
     return D @ T
 
 
+def to_first(nerf_to_world: list[np.ndarray]) -> list[np.ndarray]:
+    """Each NeRF frame -> the first NeRF's frame."""
+    world_to_first = sim3.invert_sim3(nerf_to_world[0])
+    return [sim3.compose(world_to_first, T) for T in nerf_to_world]
+
+
+def scene_subject(spec: str) -> Subject:
+    scene = SceneRuns.parse(spec)
+    renderers = [NerfstudioRenderer(p, name=c, data_override=d)
+                 for p, c, d in zip(scene.configs, scene.captures, scene.capture_dirs(), strict=True)]  # fmt: skip
+    return Subject(scene.name, scene.captures, renderers, scene.nerf_to_common())
+
+
+def case_subject(spec: str, truth: str) -> Subject:
+    case, _, folder = spec.partition("=")
+    if not case or not folder:
+        raise SystemExit(f"case {spec!r}: expected LAYOUT:SEED=CASE_DIR")
+    case_dir = Path(folder)
+    layout = case_layout(case)
+    captures = [c.name for c in layout.captures]
+    gt = capture_ground_truth(layout, case_dir, optimized=truth == "optimized")
+    key = "nerf_to_world" if truth == "stored" else "nerf_to_world_optimized"
+    if any(key not in g for g in gt):
+        raise SystemExit(f"{case_dir}: no {truth} truth for every capture (runs trained with the optimiser on?)")
+    renderers = [NerfstudioRenderer(run_config(case_dir, c), name=c) for c in captures]
+    subject = Subject(case_dir.name, captures, renderers, to_first([g[key] for g in gt]))
+    for label, path in (("registration", case_dir / "registration.json"), ("refused", rejected_registration(case_dir))):
+        if path.is_file():
+            reg = read_registration(path)
+            T = [np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]]
+            subject.solutions[label] = [sim3.compose(sim3.invert_sim3(T[0]), t) for t in T]  # into NeRF 0's frame
+    return subject
+
+
+def nearest_views(views: registration.ViewSet, T_to_other: np.ndarray, other: registration.ViewSet) -> list[int]:
+    """``views``' kept views, those whose centres (mapped by ``T_to_other``) lie nearest ``other``'s views first."""
+    centres = sim3.transform_poses(T_to_other, views.c2w)[:, :3, 3]
+    d = np.linalg.norm(centres[:, None] - other.c2w[None, :, :3, 3], axis=-1).min(axis=1)
+    return [int(k) for k in np.argsort(d, kind="stable") if views.kept[k]]
+
+
 def main(cfg: CalibrateNccConfig) -> None:
-    import numpy as np
-    from rich.console import Console
-
-    from nerfuser_ns import registration, sim3
-    from nerfuser_ns.bench.evaluation import SceneRuns
-    from nerfuser_ns.files import write_text_atomic
-    from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig
-    from nerfuser_ns.renderers import NerfstudioRenderer
-
     console = Console()
     rng = np.random.default_rng(cfg.seed)
     sampling = PoseSamplingConfig(
         source="training", max_training_poses=cfg.poses, width=cfg.width, height=cfg.height, fov_deg=65.0
     )
-    # the threshold was calibrated on the SfM mode's results
-    reg_cfg = RegistrationConfig(mode="sfm", sampling=sampling, self_check_views=cfg.views)
+    # the threshold was calibrated on the SfM mode's results; no colour maps (the check's NCC does not use them)
+    reg_cfg = RegistrationConfig(mode="sfm", sampling=sampling, self_check_views=cfg.views, colour_views=0)
+    subjects = [scene_subject(s) for s in cfg.scenes] + [case_subject(c, cfg.truth) for c in cfg.cases]
     rows = []
-    for spec in cfg.scenes:
-        scene = SceneRuns.parse(spec)
-        renderers = [
-            NerfstudioRenderer(p, name=c, data_override=d)
-            for p, c, d in zip(scene.configs, scene.captures, scene.capture_dirs(), strict=True)
-        ]
-        views = [
-            registration.render_views_cached(r, sampling, cfg.work_dir / scene.name / "renders", console)
-            for r in renderers
-        ]
-        truth = scene.nerf_to_common()
-        for i in range(1, len(renderers)):
-            for kind, size in PERTURBATIONS:
+    for subject in subjects:
+        views = [registration.render_views_cached(r, sampling, cfg.work_dir / subject.name / "renders", console)
+                 for r in subject.renderers]  # fmt: skip
+        truth = subject.truth
+        for i in range(1, len(subject.renderers)):
+            # NeRF i against its predecessor (street captures are consecutive segments; the registration checks
+            # overlapping neighbours too). Spread views: the registration picks the views that see the most shared
+            # points, so its own scores for a correct transform are higher than these.
+            order = None
+            if cfg.view_choice == "nearest":
+                T_ij = sim3.relative_sim3(truth[i], truth[i - 1])  # i - 1 -> i
+                order = {(i - 1, i): nearest_views(views[i - 1], T_ij, views[i]),
+                         (i, i - 1): nearest_views(views[i], sim3.invert_sim3(T_ij), views[i - 1])}  # fmt: skip
+            trials = [(kind, size, perturb(truth[i], kind, size, rng)) for kind, size in PERTURBATIONS]
+            trials += [(label, 0.0, T[i]) for label, T in subject.solutions.items()]
+            for kind, size, T_i in trials:
                 T = np.stack(truth)
-                T[i] = perturb(truth[i], kind, size, rng)
+                T[i] = T_i
                 t = time.perf_counter()
-                # NeRF i against its predecessor (street captures are consecutive segments; the registration checks
-                # overlapping neighbours too), on evenly spread views: the registration picks the views that see
-                # the most shared points, so its own scores for a correct transform are higher than these
                 (check,) = registration.cross_render_check(
-                    renderers, views, T, [(i - 1, i)], sampling.intrinsics(), reg_cfg
+                    subject.renderers, views, T, [(i - 1, i)], sampling.intrinsics(), reg_cfg, view_order=order
                 )
                 e = sim3.sim3_errors(T[i], truth[i])
                 rows.append(
                     {
-                        "scene": scene.name,
-                        "nerf": scene.captures[i],
+                        "scene": subject.name,
+                        "nerf": subject.captures[i],
                         "kind": kind,
                         "size": size,
                         "r_err_deg": float(e.r_err_deg),
@@ -138,10 +209,11 @@ def main(cfg: CalibrateNccConfig) -> None:
                         "seconds": time.perf_counter() - t,
                     }
                 )
-                console.print(f"{scene.name}/{scene.captures[i]} {kind} {size}: ncc {check.score:.3f}")
-    fails = [r["ncc"] for r in rows if r["failure"] and np.isfinite(r["ncc"])]
-    exact = [r["ncc"] for r in rows if r["kind"] == "none"]
-    accurate = [r["ncc"] for r in rows if r["r_err_deg"] <= 1.0 and r["t_err"] <= 0.05 and r["s_err"] <= 0.05]
+                console.print(f"{subject.name}/{subject.captures[i]} {kind} {size}: ncc {check.score:.3f}")
+    perturbed = [r for r in rows if r["kind"] in {k for k, _ in PERTURBATIONS}]
+    fails = [r["ncc"] for r in perturbed if r["failure"] and np.isfinite(r["ncc"])]
+    exact = [r["ncc"] for r in perturbed if r["kind"] == "none"]
+    accurate = [r["ncc"] for r in perturbed if r["r_err_deg"] <= 1.0 and r["t_err"] <= 0.05 and r["s_err"] <= 0.05]
     summary = {
         "max_ncc_of_failures": max(fails) if fails else None,
         "min_ncc_exact": min(exact) if exact else None,
@@ -151,6 +223,8 @@ def main(cfg: CalibrateNccConfig) -> None:
         "command": "python scripts/calibrate_ncc.py " + " ".join(sys.argv[1:]),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "settings": {"truth": cfg.truth, "view_choice": cfg.view_choice, "poses": cfg.poses,
+                     "size": [cfg.width, cfg.height], "views": cfg.views},  # fmt: skip
         "summary": summary,
         "rows": rows,
     }
@@ -164,15 +238,17 @@ def main(cfg: CalibrateNccConfig) -> None:
         "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
+        what = f"{r['kind']} {r['size']:g}" if r["kind"] in {k for k, _ in PERTURBATIONS} else r["kind"]
         lines.append(
-            f"| {r['scene']} | {r['nerf']} | {r['kind']} {r['size']:g} | {r['r_err_deg']:.2f} | "
+            f"| {r['scene']} | {r['nerf']} | {what} | {r['r_err_deg']:.2f} | "
             f"{r['t_err']:.3f} | {r['s_err']:.3f} | {'yes' if r['failure'] else 'no'} | {r['ncc']:.3f} |"
         )
     lines += [
         "",
-        f"Highest NCC of a failing transform: {summary['max_ncc_of_failures']}; lowest NCC of the exact "
-        f"transform: {summary['min_ncc_exact']}; lowest of accurate ones (r <= 1 deg, t <= 0.05, s <= 0.05): "
-        f"{summary['min_ncc_accurate']}.",
+        f"Truth: {cfg.truth}; views: {cfg.view_choice}. Highest NCC of a failing transform: "
+        f"{summary['max_ncc_of_failures']}; lowest NCC of the exact transform: {summary['min_ncc_exact']}; lowest of "
+        f"accurate ones (r <= 1 deg, t <= 0.05, s <= 0.05): {summary['min_ncc_accurate']} (perturbations of the "
+        "truth only; a registration's own solution is a row of its own).",
     ]
     write_text_atomic(cfg.output.with_suffix(".md"), "\n".join(lines) + "\n")
     console.print(summary)

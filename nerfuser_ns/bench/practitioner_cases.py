@@ -47,6 +47,12 @@ def run_config(case_dir: Path, capture: str) -> Path:
     return case_dir / "runs" / capture / "nerfacto" / "bench" / "config.yml"
 
 
+def rejected_registration(case_dir: Path) -> Path:
+    """A refused registration's solution (``ns-nerfuser-register`` keeps it as its work folder's
+    ``rejected_registration.json``), copied into the case folder and scored: never a result, a diagnostic."""
+    return case_dir / "registration_rejected.json"
+
+
 def fused_config(case_dir: Path, label: str | None) -> Path:
     """The fused run of the ``fuse`` stage (``label`` None) or of the ``matched`` / ``unmatched`` stage."""
     return case_dir / ("fused" if label is None else f"fused_{label}") / "fused" / "nerfuser" / "bench" / "config.yml"

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +20,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     fused_appearance_matching,
     fused_config,
     registration_with_transforms,
+    rejected_registration,
     share_captures,
     tie_to_world,
 )
@@ -181,11 +181,11 @@ def test_a_refused_registration_is_timed_and_keeps_this_runs_refused_solution(lo
     monkeypatch.setattr(bench, "_run", refused)
     bench.stage_register(layout, tmp_path)
     assert json.loads((tmp_path / "times.json").read_text())["register"] >= 0.2
-    assert json.loads(Path(bench.REJECTED.format(case_dir=tmp_path)).read_text()) == {"from": "this run"}
+    assert json.loads(rejected_registration(tmp_path).read_text()) == {"from": "this run"}
     assert "self-check failed" in (tmp_path / "register_failed.txt").read_text()
     # a refusal that wrote no solution (e.g. too few views) leaves the earlier run's file where it is
-    Path(bench.REJECTED.format(case_dir=tmp_path)).unlink()
+    rejected_registration(tmp_path).unlink()
     os.utime(work / "rejected_registration.json", (0, 0))
     monkeypatch.setattr(bench, "_run", lambda cmd, log, cwd=None: refused(cmd, log, solution=False))
     bench.stage_register(layout, tmp_path)
-    assert not Path(bench.REJECTED.format(case_dir=tmp_path)).exists()
+    assert not rejected_registration(tmp_path).exists()
