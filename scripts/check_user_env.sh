@@ -106,7 +106,16 @@ if [ "$TORCH_BEFORE" != "$TORCH_AFTER" ]; then
     say "FAIL: pip replaced the user's torch ($TORCH_BEFORE -> $TORCH_AFTER)"
     exit 1
 fi
-"$VENV/bin/pip" check >&2 || say "warning: pip check reports conflicts (above)"
+# pip check fails on conflicts and on its own errors (pip 26 cannot parse gtsam 4.2's wheel tag
+# cp310-cp310-none-manylinux2014_x86_64 and stops): say which
+if ! PIP_CHECK="$("$VENV/bin/pip" check 2>&1)"; then
+    if grep -q '^Traceback' <<<"$PIP_CHECK"; then
+        say "warning: pip check could not run: $(tail -n 1 <<<"$PIP_CHECK")"
+    else
+        echo "$PIP_CHECK" >&2
+        say "warning: pip check reports conflicts (above)"
+    fi
+fi
 
 # --- imports ------------------------------------------------------------------------------------------------------
 cd "$WORK"  # never the checkout: the installed package must be the one imported
