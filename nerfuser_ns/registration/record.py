@@ -512,7 +512,8 @@ def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
     ``{"nerfs": [{name, config, transform}]}``.
 
     Raises :class:`RegistrationFileError` (one line naming the file and the entry) for an unreadable file, another
-    kind, no ``nerfs`` list, or an entry without ``config`` and a transform, when iteration reaches it.
+    kind, a solution the checks refused (``refused``: why), no ``nerfs`` list, or an entry without ``config`` and a
+    transform, when iteration reaches it.
     """
     path = Path(path)
     try:
@@ -525,6 +526,11 @@ def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
         raise RegistrationFileError(f"{path}: expected a JSON object at the top level")
     if data.get("kind", KIND) != KIND:
         raise RegistrationFileError(f"{path}: not a registration file (kind {data.get('kind')!r})")
+    if data.get("refused"):
+        raise RegistrationFileError(
+            f"{path}: a solution the registration's checks refused, kept for inspection, not for fusing (why: "
+            f"{data['refused']}); to fuse it anyway, remove its \"refused\" key"
+        )
     nerfs = data.get("nerfs")
     if not isinstance(nerfs, list) or not nerfs:
         raise RegistrationFileError(f"{path}: expected a non-empty list 'nerfs' of {{name, config, transform}}")

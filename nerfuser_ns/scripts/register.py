@@ -80,8 +80,9 @@ class RegisterCommand(RegistrationConfig):
         try:
             result = register(renderers, config, work_dir, console=CONSOLE)
         except RegistrationFailed as e:
-            # Keep the rejected solution for inspection (threshold calibration), never as the output.
-            write_registration(e.result, Path(work_dir) / "rejected_registration.json")
+            # Keep the rejected solution for inspection (threshold calibration), never as the output: marked, so the
+            # fusion refuses it unless a user removes the mark on purpose.
+            write_registration({**e.record, "refused": str(e)}, Path(work_dir) / "rejected_registration.json")
             raise
         record = result.to_record()
         write_registration(record, self.output)

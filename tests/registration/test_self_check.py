@@ -18,6 +18,7 @@ from nerfuser_ns import sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.registration import pipeline as reg_pipeline
 from nerfuser_ns.renderers import RenderBatch
+from nerfuser_ns.spec import FusionSpecError, read_registered_nerfs
 
 
 def test_ncc_basics():
@@ -101,6 +102,14 @@ def test_register_fails_when_the_estimate_is_wrong(
     assert_one_line_error(rc, out, err, "capture_a and capture_b", "self-check failed")
     rejected = json.loads((work / "rejected_registration.json").read_text())
     assert rejected["pairs"][0]["self_check"]["passed"] is False
+    # marked with the refusal: the fusion refuses the file (one line naming it) until a user removes the mark
+    assert "self-check failed" in rejected["refused"]
+    with pytest.raises(FusionSpecError, match=r"rejected_registration.json: a solution the registration's "
+                                              r"checks refused.*remove its \"refused\" key"):
+        read_registered_nerfs(work / "rejected_registration.json", check_runs=False)
+    del rejected["refused"]
+    (work / "kept.json").write_text(json.dumps(rejected))
+    assert [n.name for n in reg.iter_registered_nerfs(work / "kept.json")] == ["capture_a", "capture_b"]
 
 
 def test_cameras_that_contradict_the_refined_transform_are_refused(oc_renderers, oc_record, work, monkeypatch,
