@@ -3,11 +3,11 @@
 Example::
 
     ns-nerfuser-register --configs outputs/a/nerfacto/run/config.yml outputs/b/nerfacto/run/config.yml \\
-        --output registration.json [--ground-truth scene/ground_truth.json --gt-captures capture_a capture_b]
+        --output registration.json
 
 Writes one JSON file with every NeRF's SIM(3) into the reference NeRF's frame (the first by default), the pairwise
 transforms, the settings, diagnostics and timings. Bad inputs print one red line and exit with status 1, writing
-nothing.
+no output (a solution the checks refused is kept, marked, in the work folder for inspection).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ class RegisterCommand(RegistrationConfig):
     output: Path = Path("registration.json")
     """Registration file to write (JSON, written atomically)."""
     work_dir: Path | None = None
-    """Folder for renders and SfM files, reused by later runs with the same inputs (default: <output>_work)."""
+    """Folder for renders and SfM files, reused by later runs with the same inputs (default: <output stem>_work)."""
     data: list[Path] = field(default_factory=list)
     """Dataset folder of each run, in --configs order, for runs whose config.yml points at a dataset that has moved
     (the training poses and the default render camera are read from it)."""
