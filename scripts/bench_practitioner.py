@@ -510,6 +510,20 @@ def _errors(reg: dict, gt: list[dict], truth: str) -> list[dict]:
     return errors
 
 
+def _attempts(choice: dict | None, ref: int, gt: list[dict]) -> list[dict]:
+    """The pose sources tried before the recorded one (``sampling_choice.tried_before``), each refused solution scored
+    against the stored truth (``errors``; None where the attempt left no solution), its transforms left out."""
+    out = []
+    for attempt in (choice or {}).get("tried_before", []):
+        entry = {k: v for k, v in attempt.items() if k != "refused_transforms"}
+        transforms = attempt.get("refused_transforms")
+        entry["errors"] = None if transforms is None else _errors(
+            {"reference": {"index": ref}, "nerfs": [{"name": n.get("capture"), "T_to_reference": T}
+                                                    for n, T in zip(gt, transforms, strict=True)]}, gt, "nerf_to_world")
+        out.append(entry)
+    return out
+
+
 def _blend_table(eval_json: Path) -> dict[str, dict]:
     """``blend_psnr`` / ``blend_ssim`` of every blend method (:data:`BLEND_COLUMNS`) from one ``ns-eval`` JSON."""
     results = json.loads(eval_json.read_text())["results"]
@@ -527,6 +541,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
         reg = read_registration(reg_path)
         record["registration"] = {"errors": _errors(reg, gt, "nerf_to_world"),
                                   "sampling_choice": reg.get("sampling_choice"), "timings_s": reg.get("timings_s"),
+                                  "attempts": _attempts(reg.get("sampling_choice"), reg["reference"]["index"], gt),
                                   "direct_pairs": (reg.get("direct") or {}).get("pairs")}
         if all("nerf_to_world_optimized" in g for g in gt):
             record["registration"]["errors_optimized"] = _errors(reg, gt, "nerf_to_world_optimized")
@@ -537,7 +552,8 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
             rej = read_registration(rejected)
             record["registration"].update(rejected_errors=_errors(rej, gt, "nerf_to_world"),
                                           rejected_mode=rej["settings"]["mode"],
-                                          sampling_choice=rej.get("sampling_choice"))  # fmt: skip
+                                          sampling_choice=rej.get("sampling_choice"),
+                                          attempts=_attempts(rej.get("sampling_choice"), rej["reference"]["index"], gt))
     eval_json = case_dir / "eval.json"
     if eval_json.is_file():
         record["fused_appearance_matching"] = fused_appearance_matching(case_dir)
@@ -683,8 +699,15 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
     lines += ["", "## What the automatic choice did", ""]
     for r in records:
         choice = r["registration"].get("sampling_choice") or {}
+        # records scored before attempts were: as the registration recorded them (no solutions kept then)
+        attempts = r["registration"].get("attempts") or choice.get("tried_before", [])
         lines.append(f"- {r['case']}: {choice.get('source', '-')} ({choice.get('reason', 'no registration')}); "
-                     f"tried before: {choice.get('tried_before', [])}")
+                     f"tried before: {[{k: v for k, v in a.items() if k != 'errors'} for a in attempts]}")
+        for a in attempts:
+            for e in a.get("errors") or []:
+                lines.append(f"  - refused {a['source']} / {a['mode']}: {e['nerf']} r_err {e['r_err_deg']:.3f} deg, "
+                             f"t_err {e['t_err']:.4f}, s_err {e['s_err']:.4f} "
+                             f"({'a failure' if e['failure'] else 'a success'} by the paper's rule)")
     summary = summarise(records)
     lines += ["", "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok else 'NOT met'}"
                                                        for t, ok in summary.targets()) + ".",

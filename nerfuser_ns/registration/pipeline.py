@@ -195,7 +195,10 @@ def register(
                 raise
             reason = str(e).splitlines()[0]
             seconds = round(time.perf_counter() - start, 1)  # its renders and SfM, which the record keeps no other way
-            tried.append({"source": sc.source, "mode": choice.config.mode, "error": reason, "seconds": seconds})
+            attempt = {"source": sc.source, "mode": choice.config.mode, "error": reason, "seconds": seconds}
+            if isinstance(e, RegistrationFailed):  # a check refused a solution: keep it, to judge the check later
+                attempt["refused_transforms"] = [np.asarray(nr.T_to_reference).tolist() for nr in e.result.nerfs]
+            tried.append(attempt)
             console.print(f"[yellow]{sc.source} poses did not register ({choice.config.mode}, {seconds:.0f} s): "
                           f"{reason}[/]")  # fmt: skip
             continue

@@ -189,3 +189,22 @@ def test_a_refused_registration_is_timed_and_keeps_this_runs_refused_solution(lo
     monkeypatch.setattr(bench, "_run", lambda cmd, log, cwd=None: refused(cmd, log, solution=False))
     bench.stage_register(layout, tmp_path)
     assert not rejected_registration(tmp_path).exists()
+
+
+def test_each_refused_attempt_is_scored_against_the_truth(load_script):
+    bench = load_script("bench_practitioner")
+    rng = np.random.default_rng(3)
+    A, B = (sim3.make_sim3(sim3.so3_exp(rng.normal(size=3)), rng.normal(size=3), 1.5) for _ in range(2))
+    gt = [{"capture": "a", "nerf_to_world": A}, {"capture": "b", "nerf_to_world": B}]
+    truth = sim3.compose(sim3.invert_sim3(A), B)  # b's frame -> a's (the reference)
+    turn = sim3.make_sim3(sim3.so3_exp(np.deg2rad([0.0, 2.0, 0.0])), np.zeros(3), 1.0)
+    choice = {"tried_before": [
+        {"source": "training", "mode": "sfm", "error": "camera check", "refused_transforms": [np.eye(4).tolist(),
+                                                                                             (turn @ truth).tolist()]},
+        {"source": "both", "mode": "sfm", "error": "too few views"},
+    ]}  # fmt: skip
+    refused, failed = bench._attempts(choice, 0, gt)
+    assert "refused_transforms" not in refused and refused["error"] == "camera check"
+    (e,) = refused["errors"]
+    assert e["nerf"] == "b" and e["r_err_deg"] == pytest.approx(2.0) and not e["failure"]
+    assert failed["errors"] is None and bench._attempts(None, 0, gt) == []

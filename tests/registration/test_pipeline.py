@@ -222,9 +222,10 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     with pytest.raises(reg.RegistrationError, match="no"):
         reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
     # every choice refused by a check: the refused solution (kept as rejected_registration.json) says what ran before it
-    rejected = SimpleNamespace(sampling_choice=None)
-
     def refused(renderers, config, work_dir, console):
+        turn = sim3.make_sim3(sim3.so3_exp(np.array([0.0, 0.0, len(config.sampling.source) / 100])), np.zeros(3), 1.0)
+        rejected = SimpleNamespace(sampling_choice=None, nerfs=[SimpleNamespace(T_to_reference=np.eye(4)),
+                                                                SimpleNamespace(T_to_reference=turn)])
         raise reg.RegistrationFailed(f"{config.sampling.source}/{config.mode}: self-check failed", rejected)
 
     monkeypatch.setattr(reg_pipeline, "register_once", refused)
@@ -235,6 +236,15 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     assert [(t["source"], t["mode"]) for t in choice["tried_before"]] == [("training", "sfm"), ("both", "sfm"),
                                                                           ("hemisphere", "sfm")]
     assert choice["tried_before"][0]["error"] == "training/sfm: self-check failed"
+    # each refused attempt keeps its solution (JSON lists), so the checks can be judged against a truth afterwards
+    turned = [np.asarray(t["refused_transforms"][1]) for t in choice["tried_before"]]
+    assert [float(sim3.rotation_angle_deg(T[:3, :3])) for T in turned] == pytest.approx(
+        [np.rad2deg(len(s) / 100) for s in ("training", "both", "hemisphere")])
+    assert all(t["refused_transforms"][0] == np.eye(4).tolist() for t in choice["tried_before"])
+    # an attempt that raised a plain error (no solution) keeps none
+    monkeypatch.setattr(reg_pipeline, "register_once", sfm_fails)
+    record = reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
+    assert all("refused_transforms" not in t for t in record.sampling_choice["tried_before"])
 
 
 # ---------------------------------------------------------------------------------------------------------------------
