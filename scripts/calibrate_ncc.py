@@ -123,12 +123,6 @@ def perturb(T: np.ndarray, kind: str, size: float, rng: np.random.Generator) -> 
     return D @ T
 
 
-def to_first(nerf_to_world: list[np.ndarray]) -> list[np.ndarray]:
-    """Each NeRF frame -> the first NeRF's frame."""
-    world_to_first = sim3.invert_sim3(nerf_to_world[0])
-    return [sim3.compose(world_to_first, T) for T in nerf_to_world]
-
-
 def scene_subject(spec: str) -> Subject:
     scene = SceneRuns.parse(spec)
     renderers = [NerfstudioRenderer(p, name=c, data_override=d)
@@ -148,12 +142,12 @@ def case_subject(spec: str, truth: str) -> Subject:
     if any(key not in g for g in gt):
         raise SystemExit(f"{case_dir}: no {truth} truth for every capture (runs trained with the optimiser on?)")
     renderers = [NerfstudioRenderer(run_config(case_dir, c), name=c) for c in captures]
-    subject = Subject(case_dir.name, captures, renderers, to_first([g[key] for g in gt]))
+    subject = Subject(case_dir.name, captures, renderers, list(sim3.to_reference_frame(np.stack([g[key] for g in gt]))))
     for label, path in (("registration", case_dir / "registration.json"), ("refused", rejected_registration(case_dir))):
         if path.is_file():
             reg = read_registration(path)
-            T = [np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]]
-            subject.solutions[label] = [sim3.compose(sim3.invert_sim3(T[0]), t) for t in T]  # into NeRF 0's frame
+            T = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]])
+            subject.solutions[label] = list(sim3.to_reference_frame(T))  # into NeRF 0's frame, as the truth
     return subject
 
 

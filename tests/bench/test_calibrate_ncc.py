@@ -38,14 +38,6 @@ def test_each_perturbation_is_the_error_it_names(script, kind, size):
     assert np.array_equal(script.perturb(T, "none", 0.0, np.random.default_rng(0)), T)
 
 
-def test_to_first_makes_the_first_frame_the_common_one(script):
-    Ts = [_sim3(s) for s in range(3)]
-    out = script.to_first(Ts)
-    assert np.allclose(out[0], np.eye(4))
-    # the relative transform between any two NeRFs is unchanged
-    assert np.allclose(sim3.relative_sim3(out[2], out[1]), sim3.relative_sim3(Ts[2], Ts[1]))
-
-
 def test_nearest_views_puts_the_views_by_the_other_nerf_first_and_drops_unkept_ones(script):
     def views(xs: list[float], kept: list[bool]) -> ViewSet:
         c2w = np.tile(np.eye(4), (len(xs), 1, 1))
