@@ -246,9 +246,12 @@ def register_once(
     ref, min_views, intr = check_inputs(renderers, config)
     timings: dict[str, float] = {}
 
-    # 1. Render (or reuse the renders of a previous run).
+    # 1. Render (or reuse the renders of a previous run). With depth where every renderer gives it (a by-product of
+    # the render): known geometry, the automatic choice's last step, then lifts these views instead of rendering them
+    # again (measured on a drive pair: 1131 s of its 1320 s were those renders).
     t0 = time.perf_counter()
-    views = [render_views_cached(r, config.sampling, work_dir / "renders", console) for r in renderers]
+    depth = all(gives_depth(r) for r in renderers)
+    views = [render_views_cached(r, config.sampling, work_dir / "renders", console, depth=depth) for r in renderers]
     timings["render"] = time.perf_counter() - t0
     check_kept_views(views, min_views, config.sampling)
 

@@ -179,6 +179,48 @@ def test_automatic_sampling_without_datasets_uses_the_hemisphere(oc_renderers):
         ("training", "known-geometry"), ("both", "known-geometry"), ("hemisphere", "known-geometry")]
 
 
+class DepthCountingRenderer:
+    """A renderer that gives depth and counts the views it renders."""
+
+    def __init__(self, inner):
+        self.inner, self.name, self.rendered = inner, inner.name, 0
+
+    def cache_key(self):
+        return self.inner.cache_key()
+
+    def training_poses(self):
+        return self.inner.training_poses()
+
+    def render(self, c2w, intrinsics, depth: bool = False):
+        self.rendered += len(c2w)
+        return self.inner.render(c2w, intrinsics, depth=depth)
+
+
+def test_sfm_renders_keep_depth_for_known_geometry(oc_renderers, tmp_path, monkeypatch):
+    # the SfM mode stores depth where every renderer gives it: known geometry, the automatic choice's last step, lifts
+    # those views instead of rendering them again
+    def no_sfm(*args):
+        raise reg.RegistrationError("a: its views form a separate SfM model")
+
+    monkeypatch.setattr(reg_pipeline, "run_sfm", no_sfm)
+    counting = [DepthCountingRenderer(r) for r in oc_renderers]
+    config = small_config(num_poses=4)
+    with pytest.raises(reg.RegistrationError, match="separate SfM model"):
+        reg_pipeline.register_once(counting, config, tmp_path, Console(quiet=True))
+    assert [c.rendered for c in counting] == [4, 4]
+    again = [reg.render_views_cached(c, config.sampling, tmp_path / "renders", Console(quiet=True), depth=True)
+             for c in counting]  # fmt: skip
+    assert all(v.reused and v.has_depth for v in again) and [c.rendered for c in counting] == [4, 4]
+    direct = oc_renderers[0].render(again[0].c2w[:1], config.sampling.intrinsics(), depth=True).depth[0]
+    np.testing.assert_allclose(again[0].load_depth()[0], direct, rtol=1e-6)
+    # a renderer without depth: the SfM mode renders images alone, as before
+    plain = [SimpleNamespace(name=r.name, cache_key=r.cache_key, training_poses=r.training_poses,
+                             render=lambda c2w, k, r=r: r.render(c2w, k)) for r in oc_renderers]  # fmt: skip
+    with pytest.raises(reg.RegistrationError, match="separate SfM model"):
+        reg_pipeline.register_once(plain, config, tmp_path / "plain", Console(quiet=True))
+    assert not any((f / "depth.npz").exists() for f in (tmp_path / "plain" / "renders").iterdir())
+
+
 def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypatch):
     tried = []
 
