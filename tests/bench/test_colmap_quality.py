@@ -1,0 +1,60 @@
+"""COLMAP's own pose error per capture (scripts/colmap_quality.py,
+:func:`nerfuser_ns.bench.practitioner_cases.colmap_tie`), read from a case folder without a trained run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nerfuser_ns import sim3
+from nerfuser_ns.bench.practitioner_cases import case_layout
+
+
+@pytest.fixture(scope="module")
+def quality(load_script):
+    return load_script("colmap_quality")
+
+
+def _write_dataset(case_dir, capture, poses, order):
+    """transforms.json as ns-process-data names the frames (frame_00001.png ... in the inputs' sorted order)."""
+    frames = [{"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": poses[n].tolist()}
+              for n, i in enumerate(order)]  # fmt: skip
+    folder = case_dir / "datasets" / capture
+    folder.mkdir(parents=True)
+    (folder / "transforms.json").write_text(json.dumps({"frames": frames}))
+
+
+def test_exact_and_bent_reconstructions(quality, tmp_path):
+    layout = case_layout("street:3", width=64, height=48)
+    rng = np.random.default_rng(0)
+    exact_cap, bent_cap = layout.captures[:2]
+    order = rng.permutation(exact_cap.num_views)[:50]  # COLMAP posed 50 views, in its own order
+    _write_dataset(tmp_path, exact_cap.name, sim3.transform_poses(sim3.random_sim3(rng), exact_cap.c2w_world[order]),
+                   order)  # fmt: skip
+    true = bent_cap.c2w_world.copy()  # the capture's second half turned by 4 deg about its middle camera
+    middle = true[len(true) // 2, :3, 3]
+    turn = sim3.compose(sim3.make_sim3(np.eye(3), middle), sim3.make_sim3(sim3.so3_exp(np.radians([0, 0, 4.0]))),
+                        sim3.make_sim3(np.eye(3), -middle))  # fmt: skip
+    true[len(true) // 2 :] = sim3.transform_poses(turn, true[len(true) // 2 :])
+    _write_dataset(tmp_path, bent_cap.name, true, np.arange(len(true)))
+    rows = quality.measure("street:3", tmp_path, 64, 48)
+    exact, bent = rows
+    assert (exact["posed"], exact["views"]) == (50, exact_cap.num_views) and exact["size"] == "64x48"
+    assert exact["rot_err_deg"] < 1e-6 and exact["centre_err"] < 1e-6 and exact["bend_deg"] < 1e-6
+    assert bent["bend_deg"] == pytest.approx(4.0, abs=0.3) and bent["rot_err_deg"] > 0.5
+    out = tmp_path / "report" / "quality.md"
+    out.parent.mkdir()
+    quality.write_report(rows, out, "python scripts/colmap_quality.py ...")
+    assert "| street:3 | 64x48 | capture_0 | 50/" in out.read_text()
+    assert json.loads(out.with_suffix(".json").read_text()) == rows
+
+
+def test_bad_cases_say_what_is_expected(quality, tmp_path):
+    with pytest.raises(ValueError, match="LAYOUT:SEED=CASE_DIR@WIDTHxHEIGHT"):
+        quality.parse_case("drive:6=outputs/practitioner/drive-6")
+    assert quality.parse_case("drive:6=a/b@640x480") == ("drive:6", Path("a/b"), 640, 480)
+    with pytest.raises(SystemExit, match="no datasets/"):
+        quality.measure("drive:6", tmp_path, 64, 48)
