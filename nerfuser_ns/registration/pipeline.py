@@ -330,9 +330,13 @@ def camera_failure_of(
     if not config.camera_check:
         return None
     residuals = camera_residuals(views, estimates, T_to_C)
+    # the same cameras against the estimator's own transforms: whether they fit any one SIM(3) at all
+    own = camera_residuals(views, estimates, np.stack([e.estimate.T for e in estimates]))
+    fitted = [(json_float(np.median(rot)), json_float(np.median(cen))) for rot, cen in own]
+    fitted = [None if None in f else f for f in fitted]
     scales = [float(sim3.decompose_sim3(T)[2]) for T in T_to_ref]
     return camera_failure(names, scales, [json_float(np.median(rot)) for rot, _ in residuals],
-                          [json_float(np.median(cen)) for _, cen in residuals], config)  # fmt: skip
+                          [json_float(np.median(cen)) for _, cen in residuals], config, fitted)  # fmt: skip
 
 
 MIN_DEPTH_SIGMA = 1e-4

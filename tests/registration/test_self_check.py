@@ -122,6 +122,7 @@ def test_cameras_that_contradict_the_refined_transform_are_refused(oc_renderers,
     rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work)
     assert_one_line_error(rc, out, err, "capture_b: its SfM cameras disagree with its registered transform by 9.0 deg",
                           "--no-camera-check")
+    assert "the bundle adjustment followed points" in err  # its cameras fit the estimator's own transform
     rejected = json.loads((work / "rejected_registration.json").read_text())
     assert rejected["nerfs"][1]["residuals"]["rotation_deg_median"] == pytest.approx(9.0, abs=0.3)
     assert "direct" not in rejected and rejected["pairs"][0]["self_check"] is None
@@ -145,6 +146,13 @@ def test_the_camera_check_applies_the_failure_rule_in_reference_units(rotation, 
         assert "bundle adjustment" in message  # the likely cause: without refinement, cameras among themselves
         alone = camera_failure(["b"], [scale], [rotation], [centre], reg.RegistrationConfig(refine=False))
         assert "among themselves" in alone
+        # cameras that fit their own best SIM(3) no better: the SfM itself is distorted, not the bundle adjustment
+        distorted = camera_failure(["b"], [scale], [rotation], [centre], reg.RegistrationConfig(),
+                                   [(rotation, centre)])  # fmt: skip
+        assert "fit no one SIM(3) of its known poses" in distorted and "bundle adjustment" not in distorted
+        fits = camera_failure(["b"], [scale], [rotation], [centre], reg.RegistrationConfig(), [(0.1, 0.001)])
+        assert "bundle adjustment" in fits
+        assert distorted.count("\n") == fits.count("\n") == 0
 
 
 @pytest.mark.parametrize("mode", ["sfm", "known-geometry", "graph"])
