@@ -1,0 +1,91 @@
+"""Where a practitioner case's trained NeRF puts its surfaces, against the generated scene seen through the benchmark's
+truth: the NeRF's rendered depth over the true depth at the registration's own renders.
+
+A ratio of 1 means the run's content sits at the scale (and place) the stored truth gives it, so a registration's
+scale error against that truth is the registration's own; a ratio away from 1 means the trained content itself is off
+the truth. Reads the renders ``ns-nerfuser-register`` stored with depth in its work folder (``renders/<key>``: images,
+``depth.npz``, ``accumulation.npz``, ``poses.json``) and renders the true depth at the same poses::
+
+    python scripts/depth_vs_truth.py --case drive:6 --case-dir outputs/practitioner/drive-6 \\
+        --renders outputs/practitioner/drive-6/registration_work/renders/<key> --capture 1
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+
+from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout
+from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
+from nerfuser_ns.cameras import Intrinsics
+
+
+@dataclass
+class DepthVsTruth:
+    """A run's rendered depth over the true depth at the registration's renders of it."""
+
+    case: str
+    """``LAYOUT:SEED`` of the case (as ``bench_practitioner.py --cases``)."""
+    case_dir: Path
+    """The case folder (its COLMAP datasets and runs)."""
+    renders: Path
+    """One render folder of the registration's work folder, stored with depth (``depth.npz``)."""
+    capture: int
+    """Index of the capture whose run made those renders."""
+    views: int = 12
+    """Views compared, evenly spread over the folder's."""
+    min_accumulation: float = 0.95
+    """Pixels compared: the NeRF is at least this opaque there."""
+
+
+def depth_ratios(
+    nerf: list[np.ndarray], true: list[np.ndarray], accumulation: list[np.ndarray], min_accumulation: float
+) -> dict:
+    """NeRF over true depth on the pixels both see (opaque in the NeRF, a surface in the scene): the median, and per
+    quarter of the true depths its range, median and interquartile range."""
+    ratio, depth = [], []
+    for d, t, a in zip(nerf, true, accumulation, strict=True):
+        ok = (a >= min_accumulation) & np.isfinite(t) & (t > 0) & np.isfinite(d) & (d > 0)
+        ratio.append(d[ok] / t[ok])
+        depth.append(t[ok])
+    ratio, depth = np.concatenate(ratio), np.concatenate(depth)
+    if len(ratio) == 0:
+        raise ValueError("no pixel is opaque in the NeRF and a surface in the scene")
+    edges = np.quantile(depth, [0, 0.25, 0.5, 0.75, 1.0])
+    bands = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        r = ratio[(depth >= lo) & (depth <= hi)]
+        q25, q50, q75 = np.quantile(r, [0.25, 0.5, 0.75])
+        bands.append({"true_depth": [float(lo), float(hi)], "median": float(q50), "iqr": [float(q25), float(q75)]})
+    return {"pixels": int(len(ratio)), "median": float(np.median(ratio)), "by_true_depth": bands}
+
+
+def main(cfg: DepthVsTruth) -> None:
+    meta_path, depth_path = cfg.renders / "poses.json", cfg.renders / "depth.npz"
+    if not depth_path.is_file():
+        raise SystemExit(f"{depth_path}: missing (a render folder stored with depth is needed: modes known-geometry, "
+                         f"graph, or sfm where every run renders depth)")  # fmt: skip
+    layout = case_layout(cfg.case)
+    if not 0 <= cfg.capture < len(layout.captures):
+        raise SystemExit(f"--capture {cfg.capture}: {cfg.case} has {len(layout.captures)} captures")
+    truth = capture_ground_truth(layout, cfg.case_dir, optimized=False)[cfg.capture]["nerf_to_world"]
+    meta = json.loads(meta_path.read_text())
+    intr = Intrinsics(**meta["intrinsics"])
+    c2w = np.array([v["c2w"] for v in meta["views"]], dtype=np.float64)
+    depth = np.load(depth_path)["depth"]
+    with np.load(cfg.renders / "accumulation.npz") as acc_file:
+        acc = acc_file[acc_file.files[0]]
+    scene = SceneFrameRenderer(layout.scene, truth, "truth", None)
+    pick = np.unique(np.linspace(0, len(c2w) - 1, cfg.views).round().astype(int))
+    true = [scene.render(c2w[k : k + 1], intr, depth=True).depth[0] for k in pick]
+    result = depth_ratios([depth[k] for k in pick], true, [acc[k] for k in pick], cfg.min_accumulation)
+    print(json.dumps({"case": cfg.case, "capture": layout.captures[cfg.capture].name, "renders": str(cfg.renders),
+                      "views": len(pick), **result}, indent=2))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main(tyro.cli(DepthVsTruth))
