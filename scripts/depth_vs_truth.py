@@ -8,6 +8,11 @@ the truth. Reads the renders ``ns-nerfuser-register`` stored with depth in its w
 
     python scripts/depth_vs_truth.py --case drive:6 --case-dir outputs/practitioner/drive-6 \\
         --renders outputs/practitioner/drive-6/registration_work/renders/<key> --capture 1
+
+``--registration R`` (the reference run's renders, ``--capture 0``) compares the two runs with each other instead:
+the second run's depth, rendered at the reference run's views nearest its cameras through the link of ``R`` and
+through the truth's, over the reference run's own depth (1 where the link puts the second run's surfaces where the
+reference run has them: a scale error of the link shows as a ratio away from 1).
 """
 
 from __future__ import annotations
@@ -19,9 +24,11 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout
+from nerfuser_ns import sim3
+from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, run_config
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.renderers import NerfstudioRenderer
 
 
 @dataclass
@@ -40,6 +47,8 @@ class DepthVsTruth:
     """Views compared, evenly spread over the folder's."""
     min_accumulation: float = 0.95
     """Pixels compared: the NeRF is at least this opaque there."""
+    registration: Path | None = None
+    """Compare the second run's depth through this registration's link (and the truth's) instead of the truth's."""
 
 
 def depth_ratios(
@@ -64,6 +73,28 @@ def depth_ratios(
     return {"pixels": int(len(ratio)), "median": float(np.median(ratio)), "by_true_depth": bands}
 
 
+def link_ratios(cfg: DepthVsTruth, layout, c2w: np.ndarray, intr: Intrinsics, depth: np.ndarray,
+                acc: np.ndarray) -> dict:  # fmt: skip
+    """The second run's depth over the reference run's (``--capture 0``'s renders) at the reference's views nearest
+    the second run's cameras, through the registration's link and through the stored truth's."""
+    if cfg.capture != 0:
+        raise SystemExit("--registration compares with the reference run: give its renders and --capture 0")
+    gt = capture_ground_truth(layout, cfg.case_dir, optimized=False)
+    links = {"truth": sim3.compose(sim3.invert_sim3(gt[0]["nerf_to_world"]), gt[1]["nerf_to_world"]),
+             "registration": np.asarray(json.loads(cfg.registration.read_text())["nerfs"][1]["T_to_reference"])}
+    other = NerfstudioRenderer(run_config(cfg.case_dir, layout.captures[1].name))
+    cams = sim3.transform_poses(links["truth"], other.training_poses())[:, :3, 3]
+    pick = np.argsort(np.min(np.linalg.norm(c2w[:, None, :3, 3] - cams[None], axis=-1), axis=1))[: cfg.views]
+    out = {}
+    for label, T in links.items():  # T: second run -> reference
+        scale = float(sim3.decompose_sim3(T)[2])
+        there = other.render(sim3.transform_poses(sim3.invert_sim3(T), c2w[pick]), intr, depth=True)
+        out[label] = depth_ratios([d * scale for d in there.depth], [depth[k] for k in pick],
+                                  [np.minimum(acc[k], a) for k, a in zip(pick, there.accumulation, strict=True)],
+                                  cfg.min_accumulation)  # fmt: skip
+    return out
+
+
 def main(cfg: DepthVsTruth) -> None:
     meta_path, depth_path = cfg.renders / "poses.json", cfg.renders / "depth.npz"
     if not depth_path.is_file():
@@ -79,10 +110,14 @@ def main(cfg: DepthVsTruth) -> None:
     depth = np.load(depth_path)["depth"]
     with np.load(cfg.renders / "accumulation.npz") as acc_file:
         acc = acc_file[acc_file.files[0]]
-    scene = SceneFrameRenderer(layout.scene, truth, "truth", None)
-    pick = np.unique(np.linspace(0, len(c2w) - 1, cfg.views).round().astype(int))
-    true = [scene.render(c2w[k : k + 1], intr, depth=True).depth[0] for k in pick]
-    result = depth_ratios([depth[k] for k in pick], true, [acc[k] for k in pick], cfg.min_accumulation)
+    if cfg.registration is not None:
+        result = link_ratios(cfg, layout, c2w, intr, depth, acc)
+        pick = range(min(cfg.views, len(c2w)))
+    else:
+        scene = SceneFrameRenderer(layout.scene, truth, "truth", None)
+        pick = np.unique(np.linspace(0, len(c2w) - 1, cfg.views).round().astype(int))
+        true = [scene.render(c2w[k : k + 1], intr, depth=True).depth[0] for k in pick]
+        result = depth_ratios([depth[k] for k in pick], true, [acc[k] for k in pick], cfg.min_accumulation)
     print(json.dumps({"case": cfg.case, "capture": layout.captures[cfg.capture].name, "renders": str(cfg.renders),
                       "views": len(pick), **result}, indent=2))  # fmt: skip
 
