@@ -33,7 +33,8 @@ def test_ncc_basics():
 
 def test_self_check_rejects_a_wrong_transform(oc_layout, oc_renderers, oc_record, work):
     config = small_config()
-    views = [reg.render_views_cached(r, config.sampling, work / "renders") for r in oc_renderers]
+    # the SfM registration's own renders (stored with depth: these renderers give it)
+    views = [reg.render_views_cached(r, config.sampling, work / "renders", depth=True) for r in oc_renderers]
     assert all(v.reused for v in views)
     T = np.stack([np.asarray(n["T_to_reference"]) for n in oc_record["nerfs"]])
     intr = config.sampling.intrinsics()
