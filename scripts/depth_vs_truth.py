@@ -103,7 +103,6 @@ def main(cfg: DepthVsTruth) -> None:
     layout = case_layout(cfg.case)
     if not 0 <= cfg.capture < len(layout.captures):
         raise SystemExit(f"--capture {cfg.capture}: {cfg.case} has {len(layout.captures)} captures")
-    truth = capture_ground_truth(layout, cfg.case_dir, optimized=False)[cfg.capture]["nerf_to_world"]
     meta = json.loads(meta_path.read_text())
     intr = Intrinsics(**meta["intrinsics"])
     c2w = np.array([v["c2w"] for v in meta["views"]], dtype=np.float64)
@@ -114,6 +113,7 @@ def main(cfg: DepthVsTruth) -> None:
         result = link_ratios(cfg, layout, c2w, intr, depth, acc)
         pick = range(min(cfg.views, len(c2w)))
     else:
+        truth = capture_ground_truth(layout, cfg.case_dir, optimized=False)[cfg.capture]["nerf_to_world"]
         scene = SceneFrameRenderer(layout.scene, truth, "truth", None)
         pick = np.unique(np.linspace(0, len(c2w) - 1, cfg.views).round().astype(int))
         true = [scene.render(c2w[k : k + 1], intr, depth=True).depth[0] for k in pick]
