@@ -28,6 +28,8 @@ from nerfuser_ns import sim3
 from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, run_config
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.registration.record import iter_registered_nerfs, matrix
+from nerfuser_ns.registration.render_cache import ViewSet, load_render_intrinsics
 from nerfuser_ns.renderers import NerfstudioRenderer
 
 
@@ -81,7 +83,7 @@ def link_ratios(cfg: DepthVsTruth, layout, c2w: np.ndarray, intr: Intrinsics, de
         raise SystemExit("--registration compares with the reference run: give its renders and --capture 0")
     gt = capture_ground_truth(layout, cfg.case_dir, optimized=False)
     links = {"truth": sim3.compose(sim3.invert_sim3(gt[0]["nerf_to_world"]), gt[1]["nerf_to_world"]),
-             "registration": np.asarray(json.loads(cfg.registration.read_text())["nerfs"][1]["T_to_reference"])}
+             "registration": matrix(list(iter_registered_nerfs(cfg.registration))[1].transform)}
     other = NerfstudioRenderer(run_config(cfg.case_dir, layout.captures[1].name))
     cams = sim3.transform_poses(links["truth"], other.training_poses())[:, :3, 3]
     pick = np.argsort(np.min(np.linalg.norm(c2w[:, None, :3, 3] - cams[None], axis=-1), axis=1))[: cfg.views]
@@ -96,19 +98,15 @@ def link_ratios(cfg: DepthVsTruth, layout, c2w: np.ndarray, intr: Intrinsics, de
 
 
 def main(cfg: DepthVsTruth) -> None:
-    meta_path, depth_path = cfg.renders / "poses.json", cfg.renders / "depth.npz"
-    if not depth_path.is_file():
-        raise SystemExit(f"{depth_path}: missing (a render folder stored with depth is needed: modes known-geometry, "
-                         f"graph, or sfm where every run renders depth)")  # fmt: skip
+    if not (cfg.renders / "depth.npz").is_file():
+        raise SystemExit(f"{cfg.renders / 'depth.npz'}: missing (a render folder stored with depth is needed: modes "
+                         f"known-geometry, graph, or sfm where every run renders depth)")  # fmt: skip
     layout = case_layout(cfg.case)
     if not 0 <= cfg.capture < len(layout.captures):
         raise SystemExit(f"--capture {cfg.capture}: {cfg.case} has {len(layout.captures)} captures")
-    meta = json.loads(meta_path.read_text())
-    intr = Intrinsics(**meta["intrinsics"])
-    c2w = np.array([v["c2w"] for v in meta["views"]], dtype=np.float64)
-    depth = np.load(depth_path)["depth"]
-    with np.load(cfg.renders / "accumulation.npz") as acc_file:
-        acc = acc_file[acc_file.files[0]]
+    views = ViewSet.from_folder(cfg.renders)
+    intr, c2w = load_render_intrinsics(cfg.renders), views.c2w
+    depth, acc = views.load_depth(), views.load_accumulation()
     if cfg.registration is not None:
         result = link_ratios(cfg, layout, c2w, intr, depth, acc)
         pick = range(min(cfg.views, len(c2w)))

@@ -124,6 +124,22 @@ class ViewSet:
         """Ray distance per pixel (unit-direction rays, this NeRF's units; 0 where nothing is hit)."""
         return _read_array(self.folder, "depth").astype(np.float32)
 
+    @classmethod
+    def from_folder(cls, folder: Path | str, name: str | None = None, has_depth: bool | None = None) -> ViewSet:
+        """A render folder as :func:`render_views_cached` wrote it (``name`` default: the renderer it records;
+        ``has_depth`` default: whether it holds ``depth.npz``). Raises ``OSError``, ``KeyError``, ``ValueError`` or
+        ``TypeError`` when its ``poses.json`` is missing or unreadable."""
+        folder = Path(folder)
+        meta = load_render_meta(folder)
+        views = meta["views"]
+        return cls(
+            name if name is not None else meta["renderer"], folder,
+            np.array([v["c2w"] for v in views], dtype=np.float64), [v["source"] for v in views],
+            np.array([v["mean_accumulation"] for v in views]), np.array([v["kept"] for v in views], dtype=bool),
+            reused=True, render_seconds=meta.get("render_seconds"),
+            has_depth=(folder / "depth.npz").is_file() if has_depth is None else has_depth,
+        )
+
 
 # What a damaged or truncated cache file raises when read.
 _ARRAY_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
@@ -156,6 +172,11 @@ def load_render_meta(folder: Path | str) -> dict[str, Any]:
     """A render folder's ``poses.json`` as written by :func:`render_views_cached` (raises ``OSError`` or
     ``ValueError`` when it is missing or not JSON)."""
     return json.loads((Path(folder) / POSES_FILE).read_text())
+
+
+def load_render_intrinsics(folder: Path | str) -> Intrinsics:
+    """The camera a render folder's views were rendered with (its ``poses.json``)."""
+    return Intrinsics(**load_render_meta(folder)["intrinsics"])
 
 
 def _damage(views: ViewSet) -> str | None:
@@ -240,14 +261,7 @@ def render_views_cached(
     folder = renders_root / key
     if (folder / POSES_FILE).is_file():
         try:
-            meta = load_render_meta(folder)
-            views = meta["views"]
-            cached = ViewSet(
-                renderer.name, folder, np.array([v["c2w"] for v in views], dtype=np.float64),
-                [v["source"] for v in views], np.array([v["mean_accumulation"] for v in views]),
-                np.array([v["kept"] for v in views], dtype=bool), reused=True,
-                render_seconds=meta.get("render_seconds"), has_depth=depth,
-            )
+            cached = ViewSet.from_folder(folder, renderer.name, has_depth=depth)
             damage = _damage(cached)
         except (KeyError, ValueError, TypeError) as e:
             damage = f"unreadable poses.json ({type(e).__name__})"

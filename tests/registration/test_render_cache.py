@@ -92,6 +92,12 @@ def test_a_later_pose_source_renders_only_the_poses_it_adds(oc_renderers, tmp_pa
     np.testing.assert_array_equal(mixed.load_accumulation(), fresh.load_accumulation())
     if depth:
         np.testing.assert_array_equal(mixed.load_depth(), fresh.load_depth())
+    # Read back from its folder alone (what scripts do): the same views, depth found where it was stored.
+    read = reg.ViewSet.from_folder(mixed.folder)
+    assert read.name == counting.name and read.sources == mixed.sources and read.has_depth == depth
+    np.testing.assert_array_equal(read.c2w, mixed.c2w)
+    np.testing.assert_array_equal(read.kept, mixed.kept)
+    assert reg.render_cache.load_render_intrinsics(mixed.folder) == both.intrinsics()
     for k in range(len(mixed.c2w)):
         a, b = (np.asarray(Image.open(v.folder / "images" / f"{k:05d}.png")) for v in (mixed, fresh))
         np.testing.assert_array_equal(a, b)
