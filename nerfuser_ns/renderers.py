@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import inspect
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -63,6 +64,11 @@ class Renderer(Protocol):
         their training cameras: registration's default render camera (both adapters below do).
         """
         ...
+
+
+def gives_depth(renderer: Renderer) -> bool:
+    """Whether the renderer can render depth beside the images (its ``render`` takes ``depth``)."""
+    return "depth" in inspect.signature(renderer.render).parameters
 
 
 def as_4x4(c2w: np.ndarray) -> np.ndarray:

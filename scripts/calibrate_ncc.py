@@ -82,6 +82,12 @@ class CalibrateNccConfig:
     """Render width (as the registration renders)."""
     height: int = 144
     """Render height."""
+    fov_deg: float = 65.0
+    """Horizontal field of view of the renders (the registration's: its reference run's training cameras'; the same
+    value reuses renders the registration stored when ``work_dir`` holds them)."""
+    depth: bool = False
+    """Store the renders with depth and record the depth check's median log depth ratio per direction beside the
+    NCC (renderers that give depth)."""
     views: int = 4
     """Views per direction (the registration's --self-check-views)."""
     seed: int = 0
@@ -162,15 +168,15 @@ def main(cfg: CalibrateNccConfig) -> None:
     console = Console()
     rng = np.random.default_rng(cfg.seed)
     sampling = PoseSamplingConfig(
-        source="training", max_training_poses=cfg.poses, width=cfg.width, height=cfg.height, fov_deg=65.0
+        source="training", max_training_poses=cfg.poses, width=cfg.width, height=cfg.height, fov_deg=cfg.fov_deg
     )
     # the threshold was calibrated on the SfM mode's results; no colour maps (the check's NCC does not use them)
     reg_cfg = RegistrationConfig(mode="sfm", sampling=sampling, self_check_views=cfg.views, colour_views=0)
     subjects = [scene_subject(s) for s in cfg.scenes] + [case_subject(c, cfg.truth) for c in cfg.cases]
     rows = []
     for subject in subjects:
-        views = [registration.render_views_cached(r, sampling, cfg.work_dir / subject.name / "renders", console)
-                 for r in subject.renderers]  # fmt: skip
+        views = [registration.render_views_cached(r, sampling, cfg.work_dir / subject.name / "renders", console,
+                                                  depth=cfg.depth) for r in subject.renderers]  # fmt: skip
         truth = subject.truth
         for i in range(1, len(subject.renderers)):
             # NeRF i against its predecessor (street captures are consecutive segments; the registration checks
@@ -209,10 +215,14 @@ def main(cfg: CalibrateNccConfig) -> None:
                         "ncc": check.score,
                         "ncc_prev_in_i": check.ncc_i_in_j,
                         "ncc_i_in_prev": check.ncc_j_in_i,
+                        "depth": check.depth_disagreement,
+                        "depth_prev_in_i": check.depth_i_in_j,
+                        "depth_i_in_prev": check.depth_j_in_i,
                         "seconds": time.perf_counter() - t,
                     }
                 )
-                console.print(f"{subject.name}/{subject.captures[i]} {centre} {kind} {size}: ncc {check.score:.3f}")
+                console.print(f"{subject.name}/{subject.captures[i]} {centre} {kind} {size}: ncc {check.score:.3f}, "
+                              f"depth log ratio {check.depth_disagreement:+.3f}")  # fmt: skip
     perturbed = [r for r in rows if r["centre"] == "truth"]
     fails = [r["ncc"] for r in perturbed if r["failure"] and np.isfinite(r["ncc"])]
     exact = [r["ncc"] for r in perturbed if r["kind"] == "none"]
@@ -222,12 +232,25 @@ def main(cfg: CalibrateNccConfig) -> None:
         "min_ncc_exact": min(exact) if exact else None,
         "min_ncc_accurate": min(accurate) if accurate else None,
     }
+    if cfg.depth:
+        def largest(rs):  # the largest |depth log ratio| (None when nothing was measured)
+            values = [abs(r["depth"]) for r in rs if np.isfinite(r["depth"])]
+            return max(values) if values else None
+
+        caught = [abs(r["depth"]) for r in perturbed if r["failure"] and np.isfinite(r["depth"])
+                  and np.isfinite(r["ncc"]) and r["ncc"] >= reg_cfg.ncc_threshold]  # fmt: skip
+        summary.update({
+            "max_abs_depth_exact": largest([r for r in perturbed if r["kind"] == "none"]),
+            "max_abs_depth_accurate": largest([r for r in perturbed if r["r_err_deg"] <= 1.0 and r["t_err"] <= 0.05
+                                               and r["s_err"] <= 0.05]),
+            "min_abs_depth_of_failures_the_ncc_passes": min(caught) if caught else None,
+        })  # fmt: skip
     report = {
         "command": "python scripts/calibrate_ncc.py " + " ".join(sys.argv[1:]),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "settings": {"truth": cfg.truth, "view_choice": cfg.view_choice, "around_solutions": cfg.around_solutions,
-                     "poses": cfg.poses,
+                     "poses": cfg.poses, "fov_deg": cfg.fov_deg, "depth": cfg.depth,
                      "size": [cfg.width, cfg.height], "views": cfg.views},  # fmt: skip
         "summary": summary,
         "rows": rows,
@@ -238,13 +261,15 @@ def main(cfg: CalibrateNccConfig) -> None:
         "",
         f"`{report['command']}`",
         "",
-        "| scene | NeRF | transform | perturbation | r_err | t_err | s_err | paper failure | NCC (worse direction) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| scene | NeRF | transform | perturbation | r_err | t_err | s_err | paper failure | NCC (worse direction) | "
+        "depth log ratio (farther from 0) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         lines.append(
             f"| {r['scene']} | {r['nerf']} | {r['centre']} | {r['kind']} {r['size']:g} | {r['r_err_deg']:.2f} | "
-            f"{r['t_err']:.3f} | {r['s_err']:.3f} | {'yes' if r['failure'] else 'no'} | {r['ncc']:.3f} |"
+            f"{r['t_err']:.3f} | {r['s_err']:.3f} | {'yes' if r['failure'] else 'no'} | {r['ncc']:.3f} | "
+            f"{r['depth']:+.3f} |"
         )
     lines += [
         "",
@@ -253,6 +278,10 @@ def main(cfg: CalibrateNccConfig) -> None:
         f"accurate ones (r <= 1 deg, t <= 0.05, s <= 0.05): {summary['min_ncc_accurate']} (over the truth and its "
         "perturbations; errors are against the truth in every row).",
     ]
+    if cfg.depth:
+        lines += ["", f"Depth check: largest |log ratio| of the exact transform {summary['max_abs_depth_exact']}, of "
+                      f"accurate ones {summary['max_abs_depth_accurate']}; smallest of failing transforms the NCC "
+                      f"passes (>= {reg_cfg.ncc_threshold}) {summary['min_abs_depth_of_failures_the_ncc_passes']}."]
     write_text_atomic(cfg.output.with_suffix(".md"), "\n".join(lines) + "\n")
     console.print(summary)
 

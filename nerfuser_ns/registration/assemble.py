@@ -51,7 +51,8 @@ def _pair_results(
                 None if c is None else PairCheck(
                     json_float(c.score), json_float(c.ncc_i_in_j), json_float(c.ncc_j_in_i), c.views,
                     config.ncc_threshold, passed(c, config), colour_record(c.colour_j_to_i),
-                    colour_record(c.colour_i_to_j), int(c.colour_pixels),
+                    colour_record(c.colour_i_to_j), int(c.colour_pixels), json_float(c.depth_i_in_j),
+                    json_float(c.depth_j_in_i), config.depth_threshold,
                 ),
             ))  # fmt: skip
     return pairs

@@ -331,6 +331,13 @@ class RegistrationConfig:
     units >= 0.53, rotations >= 10 deg or translations >= 0.4 <= 0.20; scale errors alone barely move it."""
     ncc_downsample: int = 4
     """Block-average both images by this factor before the NCC (tolerates blur and sub-pixel misalignment)."""
+    depth_threshold: float = 0.07
+    """Cross-render check (ours): fail when a checked pair's other NeRF, rendered at a NeRF's views through the link,
+    puts its surfaces farther or nearer than that NeRF's own depth by more than this median log ratio (either
+    direction; where both give depth; 0 disables). The NCC barely sees scale errors: a drive link 13% off in scale
+    passed at NCC 0.62. Fixed on that drive's true link and its perturbations (reports/depth_check_calibration_drive6.md):
+    the exact link 0.007, links within 1 deg / 0.05 units / 0.05 in log scale <= 0.049, scale errors of 0.1 0.103, the
+    wrong link 0.207."""
     colour_views: int = 16
     """Appearance matching: views per checked pair and direction the colour maps are fitted on, evenly spread over
     each NeRF's views and rendered at half size (each NeRF renders its own views brighter than the other does, by a
@@ -366,6 +373,8 @@ def validate_settings(config: RegistrationConfig) -> Intrinsics:
         (config.self_check_views >= 0, "--self-check-views must be >= 0"),
         (config.colour_views >= 0, "--colour-views must be >= 0"),
         (config.ncc_downsample >= 1, "--ncc-downsample must be >= 1"),
+        (math.isfinite(config.depth_threshold) and config.depth_threshold >= 0,
+         "--depth-threshold must be >= 0 (0 disables the depth check)"),
         (config.min_registered_views >= 2, "--min-registered-views must be >= 2"),
         (config.umeyama_max_error > 0, "--umeyama-max-error must be > 0"),
         (config.sfm.exhaustive_max_images >= 2 and config.sfm.own_neighbors >= 1 and config.sfm.cross_views >= 1,

@@ -37,10 +37,9 @@ from nerfuser_ns.appearance import OPAQUE, luma
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.config import DirectConfig
 from nerfuser_ns.registration.known_geometry import bilinear, pixel_index, pixel_rays, project
-from nerfuser_ns.registration.pairwise import gives_depth
 from nerfuser_ns.registration.render_cache import ViewSet
 from nerfuser_ns.registration.self_check import tree_edges
-from nerfuser_ns.renderers import Renderer
+from nerfuser_ns.renderers import Renderer, gives_depth
 
 NO_CHANGE = {"r_deg": 0.0, "t": 0.0, "s": 0.0}
 

@@ -60,7 +60,7 @@ from nerfuser_ns.registration.self_check import (
     CrossRenderCheck,
     cross_render_check,
     failure_message,
-    passed,
+    pair_failure,
 )
 from nerfuser_ns.renderers import Renderer
 
@@ -106,9 +106,8 @@ def _register_pair(
     T_pair[b] = hyps[n].T
     check = cross_render_check(renderers, views, T_pair, [(a, b)], intr, config,
                                check_views(feats, views, {(a, b): m}, {(a, b): hyps[n]}, [(a, b)]))[0]  # fmt: skip
-    if not passed(check, config):
-        what = "saw nothing in common" if not np.isfinite(check.score) else f"NCC {check.score:.2f}"
-        return PairOutcome(m, hyps, None, f"cross-render self-check failed ({what} < {config.ncc_threshold})", check)
+    if (why := pair_failure(check, config)) is not None:
+        return PairOutcome(m, hyps, None, why, check)
     return PairOutcome(m, hyps, n, None, check)
 
 

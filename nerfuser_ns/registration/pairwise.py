@@ -7,7 +7,6 @@ these steps."""
 
 from __future__ import annotations
 
-import inspect
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -46,7 +45,7 @@ from nerfuser_ns.registration.retrieval import (
     view_histograms,
 )
 from nerfuser_ns.registration.self_check import tree_edges, view_nccs
-from nerfuser_ns.renderers import Renderer
+from nerfuser_ns.renderers import Renderer, gives_depth
 
 
 def view_similarity(
@@ -245,11 +244,6 @@ def chain_from_reference(
         else:
             T[child] = T[parent] @ sim3.invert_sim3(chosen[(child, parent)].T)
     return T
-
-
-def gives_depth(renderer: Renderer) -> bool:
-    """Whether the renderer can render depth beside the images (its ``render`` takes ``depth``)."""
-    return "depth" in inspect.signature(renderer.render).parameters
 
 
 def check_depth(renderers: Sequence[Renderer]) -> None:

@@ -48,7 +48,6 @@ from nerfuser_ns.registration.pairwise import (
     check_depth,
     check_views,
     choose_hypothesis,
-    gives_depth,
     matches_per_pair,
     pair_hypotheses,
     pair_summary,
@@ -76,7 +75,7 @@ from nerfuser_ns.registration.self_check import (
     spanning_pairs,
 )
 from nerfuser_ns.registration.sfm import check_registered_views, run_sfm
-from nerfuser_ns.renderers import NerfstudioRenderer, Renderer
+from nerfuser_ns.renderers import NerfstudioRenderer, Renderer, gives_depth
 from nerfuser_ns.runs import default_device, run_names
 
 

@@ -267,11 +267,19 @@ class PairCheck:
     colour_i_to_j: list | None = None
     colour_pixels: int = 0
     """Pixel pairs the colour maps were fitted on."""
+    depth_i_in_j: float | None = None
+    """Median log ratio of j's depth at i's views (mapped through the link) over i's own (null: not measured)."""
+    depth_j_in_i: float | None = None
+    depth_threshold: float | None = None
+    """The depth check's threshold on the larger of the two (null: records before it, or not measured)."""
 
     def to_record(self) -> dict:
         record = asdict(self)
         if self.colour_pixels == 0 and self.colour_j_to_i is None and self.colour_i_to_j is None:
             for key in ("colour_j_to_i", "colour_i_to_j", "colour_pixels"):  # not fitted: as records before them
+                del record[key]
+        if self.depth_threshold is None and self.depth_i_in_j is None and self.depth_j_in_i is None:
+            for key in ("depth_i_in_j", "depth_j_in_i", "depth_threshold"):  # as records before the depth check
                 del record[key]
         return record
 

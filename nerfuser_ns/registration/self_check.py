@@ -23,7 +23,7 @@ from nerfuser_ns.registration.config import RegistrationConfig, RegistrationErro
 from nerfuser_ns.registration.estimate import NerfEstimate, estimate_transform
 from nerfuser_ns.registration.render_cache import ViewSet, to_uint8
 from nerfuser_ns.registration.sfm import SfMResult, other_models
-from nerfuser_ns.renderers import Renderer
+from nerfuser_ns.renderers import Renderer, gives_depth
 
 COLOUR_REDUCE = 2
 """The colour fit renders its views at 1/COLOUR_REDUCE of the size: its sums need views, not pixels (measured on the
@@ -85,6 +85,17 @@ class CrossRenderCheck:
     """The same from i's to j's."""
     colour_pixels: int = 0
     """Pixel pairs the colour maps were fitted on."""
+    depth_i_in_j: float = float("nan")
+    """Median log depth ratio (:func:`depth_log_ratio`) of j rendered at i's views mapped into j's frame against i's
+    own depth (NaN: no depth, from either renderer or the stored views)."""
+    depth_j_in_i: float = float("nan")
+    """The same the other way round."""
+
+    @property
+    def depth_disagreement(self) -> float:
+        """The direction whose log depth ratio lies farther from 0, signed (NaN when neither was measured)."""
+        values = [v for v in (self.depth_i_in_j, self.depth_j_in_i) if np.isfinite(v)]
+        return float(max(values, key=abs)) if values else float("nan")
 
     @property
     def score(self) -> float:
@@ -93,12 +104,38 @@ class CrossRenderCheck:
             else float("nan")
 
 
+def _finite_median(x: np.ndarray) -> float:
+    return float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else float("nan")
+
+
 def _cross_direction(
     src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
     cfg: RegistrationConfig, acc_src: np.ndarray,
+) -> tuple[float, float]:
+    """(median NCC, median log depth ratio) over ``src``'s first ``cfg.self_check_views`` views of ``order``."""
+    depths: list[float] = []
+    scores = view_nccs(src, dst, T_src_to_dst, list(order)[: cfg.self_check_views], intrinsics, cfg, acc_src,
+                       depths=depths)  # fmt: skip
+    return _finite_median(scores), _finite_median(np.array(depths, dtype=np.float64))
+
+
+def depth_log_ratio(
+    own: Float[np.ndarray, "h w"],
+    other: Float[np.ndarray, "h w"],
+    scale: float,
+    mask: np.ndarray,
+    min_fraction: float = 0.1,
 ) -> float:
-    scores = view_nccs(src, dst, T_src_to_dst, list(order)[: cfg.self_check_views], intrinsics, cfg, acc_src)
-    return float(np.median(scores[np.isfinite(scores)])) if np.isfinite(scores).any() else float("nan")
+    """Median over ``mask`` of ``log(other / (scale * own))``: ``own`` one NeRF's ray distance at its view, ``other``
+    the other NeRF's at the same view mapped through a link of scale ``scale`` (its units per the first's).
+
+    0 where the link puts the other NeRF's surfaces where the first has them; a link whose scale is off by ``e`` in
+    log scale about the camera gives ``-e``. NaN when fewer than ``min_fraction`` of the pixels are usable.
+    """
+    ok = mask & np.isfinite(own) & np.isfinite(other) & (own > 0) & (other > 0)
+    if ok.sum() < max(4, min_fraction * ok.size):
+        return float("nan")
+    return float(np.median(np.log(other[ok].astype(np.float64) / (scale * own[ok].astype(np.float64)))))
 
 
 def spread_views(views: ViewSet, count: int) -> Float[np.ndarray, " m"]:
@@ -124,6 +161,7 @@ def _colour_pairs(
 def view_nccs(
     src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
     cfg: RegistrationConfig, acc_src: np.ndarray | None = None, reduce: int = 1, colours: list | None = None,
+    depths: list | None = None,
 ) -> Float[np.ndarray, " n"]:
     """NCC of each of ``src``'s views ``order`` against ``dst`` rendered at that view mapped by ``T_src_to_dst``
     (NaN where they see too little in common).
@@ -133,18 +171,24 @@ def view_nccs(
 
     ``colours``, when given, receives per view ``(src's colours, dst's colours)`` at the pixels both render opaque
     (accumulation >= :data:`nerfuser_ns.appearance.OPAQUE`): the appearance matching's samples.
+
+    ``depths``, when given and both ``src``'s stored views and ``dst`` give depth, receives per view
+    :func:`depth_log_ratio` of ``dst``'s depth against ``src``'s on the pixels both render opaque.
     """
     order = list(order)
     if not order:
         return np.zeros(0)
     acc_src = src.load_accumulation() if acc_src is None else acc_src
+    with_depth = depths is not None and src.has_depth and gives_depth(dst)
+    depth_src = src.load_depth() if with_depth else None
+    scale = float(sim3.decompose_sim3(T_src_to_dst)[2])
     poses = sim3.transform_poses(T_src_to_dst, src.c2w[order])
     big = intrinsics
     small = big if reduce <= 1 else Intrinsics(big.fx / reduce, big.fy / reduce, big.cx / reduce, big.cy / reduce,
                                                big.width // reduce, big.height // reduce)  # fmt: skip
     scores = []
     for k, pose in zip(order, poses, strict=True):
-        out = dst.render(pose[None], small)
+        out = dst.render(pose[None], small, **({"depth": True} if with_depth else {}))
         rgb = np.nan_to_num(np.asarray(out.rgb[0], dtype=np.float32))
         # Compare what the PNG stored, as the SfM saw it.
         rgb = to_uint8(rgb).astype(np.float32) / 255
@@ -157,6 +201,11 @@ def view_nccs(
             if out.accumulation is not None:
                 opaque &= np.nan_to_num(out.accumulation[0]) >= appearance.OPAQUE
             colours.append((own[opaque], rgb[opaque]))
+        if with_depth and out.depth is not None:
+            both = block_mean(acc_src[k], reduce) >= appearance.OPAQUE
+            if out.accumulation is not None:
+                both &= np.nan_to_num(out.accumulation[0]) >= appearance.OPAQUE
+            depths.append(depth_log_ratio(block_mean(depth_src[k], reduce), np.asarray(out.depth[0]), scale, both))
         scores.append(ncc(own, rgb, mask, max(1, cfg.ncc_downsample // reduce)))
     return np.array(scores)
 
@@ -187,8 +236,8 @@ def cross_render_check(
                 return view_order[(a, b)]
             return spread_views(views[a], cfg.self_check_views)
 
-        s_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), intrinsics, cfg, accs[i])
-        s_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), intrinsics, cfg, accs[j])
+        s_ij, d_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), intrinsics, cfg, accs[i])
+        s_ji, d_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), intrinsics, cfg, accs[j])
         colour_j_to_i = colour_i_to_j = None
         pixels = 0
         if cfg.colour_views > 0:
@@ -197,7 +246,8 @@ def cross_render_check(
             colour_j_to_i = appearance.fit_colour_map_directions([(j_there, i_own), (j_own, i_there)])
             colour_i_to_j = appearance.fit_colour_map_directions([(i_own, j_there), (i_there, j_own)])
             pixels = len(i_own) + len(j_own)
-        checks.append(CrossRenderCheck(i, j, s_ij, s_ji, cfg.self_check_views, colour_j_to_i, colour_i_to_j, pixels))
+        checks.append(CrossRenderCheck(i, j, s_ij, s_ji, cfg.self_check_views, colour_j_to_i, colour_i_to_j, pixels,
+                                       d_ij, d_ji))  # fmt: skip
     return checks
 
 
@@ -253,9 +303,23 @@ def best_views(
     return view_order
 
 
+def pair_failure(check: CrossRenderCheck, config: RegistrationConfig) -> str | None:
+    """What failed in a pair's cross-render check, in words, or None: its NCC below the threshold (a pair that saw
+    nothing in common fails), else its depth disagreement beyond ``config.depth_threshold`` (where measured)."""
+    if not (np.isfinite(check.score) and check.score >= config.ncc_threshold):
+        what = "saw nothing in common" if not np.isfinite(check.score) else f"NCC {check.score:.2f}"
+        return f"cross-render self-check failed ({what} < {config.ncc_threshold})"
+    d = check.depth_disagreement
+    if config.depth_threshold > 0 and np.isfinite(d) and abs(d) > config.depth_threshold:
+        return (f"cross-render depth check failed (through the link, the other NeRF renders the surfaces "
+                f"{math.exp(d):.2f}x as deep as each NeRF's own depth at its views: median log ratio {d:+.3f}, beyond "
+                f"{config.depth_threshold}; the link's scale or place is wrong)")  # fmt: skip
+    return None
+
+
 def passed(check: CrossRenderCheck, config: RegistrationConfig) -> bool:
-    """Whether a pair's cross-render NCC reaches the threshold (a pair that saw nothing in common fails)."""
-    return bool(np.isfinite(check.score) and check.score >= config.ncc_threshold)
+    """Whether a pair's cross-render check passed (:func:`pair_failure`)."""
+    return pair_failure(check, config) is None
 
 
 def camera_residuals(
@@ -371,11 +435,9 @@ LIKELY_CAUSE = {
 def failure_message(checks: Sequence[CrossRenderCheck], names: Sequence[str], config: RegistrationConfig) -> str | None:
     """The one-line error for the first failed pair, or None when every checked pair passed."""
     for c in checks:
-        if not passed(c, config):
-            what = "saw nothing in common" if not np.isfinite(c.score) else f"NCC {c.score:.2f}"
-            return (
-                f"{names[c.i]} and {names[c.j]}: cross-render self-check failed ({what} < {config.ncc_threshold}); "
-                f"{LIKELY_CAUSE[config.mode]}; {suggestion(config.sampling.source)} (or calibrate --ncc-threshold for "
-                f"blurry renders)"
-            )
+        if (what := pair_failure(c, config)) is not None:
+            escape = ("calibrate --ncc-threshold for blurry renders" if what.startswith("cross-render self-check")
+                      else "--depth-threshold 0 to skip the depth check")  # fmt: skip
+            return (f"{names[c.i]} and {names[c.j]}: {what}; {LIKELY_CAUSE[config.mode]}; "
+                    f"{suggestion(config.sampling.source)} (or {escape})")  # fmt: skip
     return None

@@ -17,6 +17,7 @@ from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.registration import pipeline as reg_pipeline
+from nerfuser_ns.registration.self_check import depth_log_ratio, failure_message, passed
 from nerfuser_ns.renderers import RenderBatch
 from nerfuser_ns.spec import FusionSpecError, read_registered_nerfs
 
@@ -44,6 +45,46 @@ def test_self_check_rejects_a_wrong_transform(oc_layout, oc_renderers, oc_record
     bad = reg.cross_render_check(oc_renderers, views, wrong, [(0, 1)], intr, config)[0]
     assert good.score > 0.9
     assert bad.score < config.ncc_threshold
+    # These renderers give true depth: through the estimate, each NeRF's surfaces lie where the other has them.
+    assert abs(good.depth_disagreement) < 0.01 and passed(good, config)
+
+
+def test_the_depth_check_sees_a_scale_error_the_ncc_passes(oc_renderers, oc_record, work):
+    config = small_config()
+    views = [reg.render_views_cached(r, config.sampling, work / "renders", depth=True) for r in oc_renderers]
+    T = np.stack([np.asarray(n["T_to_reference"]) for n in oc_record["nerfs"]])
+    # The second NeRF scaled by 22% about its own cameras' centre: its views barely move, its surfaces do.
+    centre = sim3.transform_points(T[1], views[1].c2w[:, :3, 3]).mean(axis=0)
+    scaled = T.copy()
+    scaled[1] = sim3.make_sim3(np.exp(0.2) * np.eye(3), centre - np.exp(0.2) * centre) @ T[1]
+    intr = config.sampling.intrinsics()
+    check = reg.cross_render_check(oc_renderers, views, scaled, [(0, 1)], intr, config)[0]
+    assert check.score >= config.ncc_threshold  # the NCC passes it ...
+    assert abs(check.depth_disagreement) > 2 * config.depth_threshold  # ... the depth does not
+    assert not passed(check, config)
+    message = failure_message([check], ["a", "b"], config)
+    assert message.startswith("a and b: cross-render depth check failed") and "--depth-threshold 0" in message
+    # 0 disables it; renders stored without depth measure nothing and pass as before
+    assert passed(check, dataclasses.replace(config, depth_threshold=0.0))
+    plain = [reg.render_views_cached(r, config.sampling, work / "renders") for r in oc_renderers]
+    unmeasured = reg.cross_render_check(oc_renderers, plain, scaled, [(0, 1)], intr, config)[0]
+    assert np.isnan(unmeasured.depth_disagreement) and passed(unmeasured, config)
+
+
+def test_depth_log_ratio_is_the_links_scale_error():
+    rng = np.random.default_rng(0)
+    own = rng.uniform(1.0, 5.0, (20, 30))
+    mask = np.ones(own.shape, bool)
+    # the other NeRF at twice the units; a link that claims 2 * exp(0.1) is 0.1 too large in log scale
+    assert depth_log_ratio(own, 2.0 * own, 2.0, mask) == pytest.approx(0.0, abs=1e-12)
+    assert depth_log_ratio(own, 2.0 * own, 2.0 * np.exp(0.1), mask) == pytest.approx(-0.1)
+    noisy = 2.0 * own * np.exp(rng.normal(0, 0.02, own.shape))
+    noisy[:2] = 1e3  # a few outliers (floaters) do not move the median
+    assert depth_log_ratio(own, noisy, 2.0, mask) == pytest.approx(0.0, abs=0.01)
+    hidden = own.copy()
+    hidden[mask] = 0.0  # nothing hit
+    assert np.isnan(depth_log_ratio(own, hidden, 2.0, mask))
+    assert np.isnan(depth_log_ratio(own, 2.0 * own, 2.0, np.zeros(own.shape, bool)))
 
 
 class _Gained:
