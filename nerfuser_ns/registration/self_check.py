@@ -2,7 +2,9 @@
 wrong model).
 
 For a spanning tree of NeRF pairs (i, j) chosen by their SfM overlap: views of i are mapped through the solution
-into j's frame, rendered by j, and compared with i's own renders by normalised cross-correlation (and back). Before
+into j's frame, rendered by j, and compared with i's own renders by normalised cross-correlation (and back), and, where
+both give depth, j's depth there with i's own (:func:`depth_log_ratio`: a link wrong in scale, which the NCC barely
+sees, puts j's surfaces nearer or farther than i's). Before
 it, and before the direct alignment's renders, each NeRF's SfM cameras are checked against its transform
 (:func:`camera_failure`), and the SfM's other models that link the same NeRFs against the registration's link
 (:func:`model_failure`); the cameras again against the final transform.
