@@ -184,13 +184,14 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         table.add_row(*row)
     console.print(table)
     pairs = Table(title="NeRF pairs")
-    for col in ("pair", "covisible 3D points", "cross-render NCC", "depth log ratio", "check"):
+    for col in ("pair", "covisible 3D points", "cross-render NCC", "depth", "check"):
         pairs.add_column(col, justify="left" if col == "pair" else "right")
     for p in record["pairs"]:
         sc = p["self_check"]
+        # the depth check's log ratio: the direction farther from 0, as the check judges it
         depths = [] if sc is None else [d for d in (sc.get("depth_i_in_j"), sc.get("depth_j_in_i")) if d is not None]
         pairs.add_row(pair(p["names"]), str(p["covisible_points"]), "-" if sc is None else _fmt(sc["ncc"], ".3f"),
-                      " / ".join(f"{d:+.3f}" for d in depths) or "-",
+                      f"{max(depths, key=abs):+.3f}" if depths else "-",
                       "-" if sc is None else ("[green]passed[/]" if sc["passed"] else "[red]failed[/]"))
     console.print(pairs)
     ref = record.get("refinement")

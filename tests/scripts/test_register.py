@@ -24,7 +24,8 @@ def _record(names: list[str]) -> dict:
     residuals = {"rotation_deg_median": 0.1, "centre_median": 0.001}
     nerfs = [{"name": n, "views": views, "residuals": residuals, "scale_to_reference": 1.0, "scale_spread": 0.001,
               "estimator": "weiszfeld"} for n in names]  # fmt: skip
-    pair = {"names": names, "covisible_points": 100, "self_check": {"ncc": 0.7, "passed": True}}
+    pair = {"names": names, "covisible_points": 100,
+            "self_check": {"ncc": 0.7, "passed": True, "depth_i_in_j": 0.012, "depth_j_in_i": -0.031}}
     return {"reference": {"name": names[0], "index": 0}, "nerfs": nerfs, "pairs": [pair], "timings_s": {"render": 1.0}}
 
 
@@ -34,6 +35,7 @@ def test_the_summary_tells_the_runs_apart_in_a_narrow_terminal():
     text = console.export_text()
     assert "part_a/nerfacto/2026-11-27_1" in text and "part_b/nerfacto/2026-11-27_1" in text
     assert f"frame of {A}" in text.replace("\n", "")  # the title keeps the reference's full path
+    assert "-0.031" in text and "0.012" not in text  # the depth direction farther from 0, as the check judges it
 
 
 def test_the_camera_optimiser_tip_names_the_runs_trained_with_one():
