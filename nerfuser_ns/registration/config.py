@@ -335,9 +335,10 @@ class RegistrationConfig:
     """Cross-render check (ours): fail when a checked pair's other NeRF, rendered at a NeRF's views through the link,
     puts its surfaces farther or nearer than that NeRF's own depth by more than this median log ratio (either
     direction; where both give depth; 0 disables). The NCC barely sees scale errors: a drive link 13% off in scale
-    passed at NCC 0.62. Fixed on that drive's true link and its perturbations (reports/depth_check_calibration_drive6.md):
-    the exact link 0.007, links within 1 deg / 0.05 units / 0.05 in log scale <= 0.049, scale errors of 0.1 0.103, the
-    wrong link 0.207."""
+    passed at NCC 0.62. Fixed on that drive's true link and its perturbations
+    (reports/depth_check_calibration_drive6.md): the exact link 0.007, links within 1 deg / 0.05 units / 0.05 in log
+    scale <= 0.049, scale errors of 0.1 0.103, the wrong link 0.207; on the demo pair, checked after, 0.008, <= 0.027
+    and 0.113 (reports/depth_check_calibration_demo.md)."""
     colour_views: int = 16
     """Appearance matching: views per checked pair and direction the colour maps are fitted on, evenly spread over
     each NeRF's views and rendered at half size (each NeRF renders its own views brighter than the other does, by a
