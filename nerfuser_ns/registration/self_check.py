@@ -183,7 +183,7 @@ def view_nccs(
     acc_src = src.load_accumulation() if acc_src is None else acc_src
     with_depth = depths is not None and src.has_depth and gives_depth(dst)
     depth_src = src.load_depth() if with_depth else None
-    scale = float(sim3.decompose_sim3(T_src_to_dst)[2])
+    scale = float(sim3.decompose_sim3(T_src_to_dst)[2]) if with_depth else 1.0
     poses = sim3.transform_poses(T_src_to_dst, src.c2w[order])
     big = intrinsics
     small = big if reduce <= 1 else Intrinsics(big.fx / reduce, big.fy / reduce, big.cx / reduce, big.cy / reduce,
@@ -198,16 +198,14 @@ def view_nccs(
         if out.accumulation is not None:
             mask &= np.nan_to_num(out.accumulation[0]) >= 0.5
         own = block_mean(src.load_rgb(k), reduce)
-        if colours is not None:
+        if colours is not None or with_depth:  # the pixels both render opaque
             opaque = block_mean(acc_src[k], reduce) >= appearance.OPAQUE
             if out.accumulation is not None:
                 opaque &= np.nan_to_num(out.accumulation[0]) >= appearance.OPAQUE
+        if colours is not None:
             colours.append((own[opaque], rgb[opaque]))
         if with_depth and out.depth is not None:
-            both = block_mean(acc_src[k], reduce) >= appearance.OPAQUE
-            if out.accumulation is not None:
-                both &= np.nan_to_num(out.accumulation[0]) >= appearance.OPAQUE
-            depths.append(depth_log_ratio(block_mean(depth_src[k], reduce), np.asarray(out.depth[0]), scale, both))
+            depths.append(depth_log_ratio(block_mean(depth_src[k], reduce), np.asarray(out.depth[0]), scale, opaque))
         scores.append(ncc(own, rgb, mask, max(1, cfg.ncc_downsample // reduce)))
     return np.array(scores)
 
