@@ -13,7 +13,8 @@ checks refused, is cross-rendered too, beside the truth's perturbations). ``--vi
 on its views nearest the other NeRF's cameras (under the truth), as the registration checks the views that share the
 most SfM points with the other NeRF; on a drive, whose captures overlap only at their ends, evenly spread views
 mostly see what the other NeRF never saw. ``--around-solutions`` perturbs the case's solution as well: whether it sits
-at a peak of the NCC.
+at a peak of the NCC. ``--depth`` compares depth as the registration does: at each NeRF's views nearest the
+other's under the link being checked, whatever ``--view-choice``.
 
 Example:
     python scripts/calibrate_ncc.py --scenes demo=demo/scene:demo/runs \\
@@ -47,6 +48,7 @@ from nerfuser_ns.bench.practitioner_cases import (
 )
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig, read_registration
+from nerfuser_ns.registration.self_check import nearest_views
 from nerfuser_ns.renderers import NerfstudioRenderer
 
 # fmt: off
@@ -155,13 +157,6 @@ def case_subject(spec: str, truth: str) -> Subject:
             T = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]])
             subject.solutions[label] = list(sim3.to_reference_frame(T))  # into NeRF 0's frame, as the truth
     return subject
-
-
-def nearest_views(views: registration.ViewSet, T_to_other: np.ndarray, other: registration.ViewSet) -> list[int]:
-    """``views``' kept views, those whose centres (mapped by ``T_to_other``) lie nearest ``other``'s views first."""
-    centres = sim3.transform_poses(T_to_other, views.c2w)[:, :3, 3]
-    d = np.linalg.norm(centres[:, None] - other.c2w[None, :, :3, 3], axis=-1).min(axis=1)
-    return [int(k) for k in np.argsort(d, kind="stable") if views.kept[k]]
 
 
 def main(cfg: CalibrateNccConfig) -> None:

@@ -4,7 +4,9 @@ wrong model).
 For a spanning tree of NeRF pairs (i, j) chosen by their SfM overlap: views of i are mapped through the solution
 into j's frame, rendered by j, and compared with i's own renders by normalised cross-correlation (and back), and, where
 both give depth, j's depth there with i's own (:func:`depth_log_ratio`: a link wrong in scale, which the NCC barely
-sees, puts j's surfaces nearer or farther than i's). Before
+sees, puts j's surfaces nearer or farther than i's). The depth is compared at i's views nearest j's views under the
+solution (:func:`nearest_views`), not at the views sharing the most SfM points that the NCC uses: those are the
+content the link was fitted to, where a link wrong elsewhere still agrees. Before
 it, and before the direct alignment's renders, each NeRF's SfM cameras are checked against its transform
 (:func:`camera_failure`), and the SfM's other models that link the same NeRFs against the registration's link
 (:func:`model_failure`); the cameras again against the final transform.
@@ -111,14 +113,28 @@ def _finite_median(x: np.ndarray) -> float:
 
 
 def _cross_direction(
-    src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], intrinsics: Intrinsics,
-    cfg: RegistrationConfig, acc_src: np.ndarray,
+    src: ViewSet, dst: Renderer, T_src_to_dst: np.ndarray, order: Sequence[int], depth_order: Sequence[int],
+    intrinsics: Intrinsics, cfg: RegistrationConfig, acc_src: np.ndarray,
 ) -> tuple[float, float]:
-    """(median NCC, median log depth ratio) over ``src``'s first ``cfg.self_check_views`` views of ``order``."""
+    """(median NCC over ``src``'s first ``cfg.self_check_views`` views of ``order``, median log depth ratio over the
+    first as many of ``depth_order``); one set of renders when both name the same views."""
+    views = list(order)[: cfg.self_check_views]
+    depth_views = list(depth_order)[: cfg.self_check_views]
     depths: list[float] = []
-    scores = view_nccs(src, dst, T_src_to_dst, list(order)[: cfg.self_check_views], intrinsics, cfg, acc_src,
-                       depths=depths)  # fmt: skip
+    same = views == depth_views
+    scores = view_nccs(src, dst, T_src_to_dst, views, intrinsics, cfg, acc_src, depths=depths if same else None)
+    if not same:
+        view_nccs(src, dst, T_src_to_dst, depth_views, intrinsics, cfg, acc_src, depths=depths)
     return _finite_median(scores), _finite_median(np.array(depths, dtype=np.float64))
+
+
+def nearest_views(views: ViewSet, T_to_other: Float[np.ndarray, "4 4"], other: ViewSet) -> list[int]:
+    """``views``' kept views, those whose centres mapped by ``T_to_other`` lie nearest ``other``'s view centres first
+    (where the other NeRF renders from nearby if the link is right; chosen by the cameras alone, not by the content
+    a link was fitted to)."""
+    centres = sim3.transform_poses(T_to_other, views.c2w)[:, :3, 3]
+    d = np.linalg.norm(centres[:, None] - other.c2w[None, :, :3, 3], axis=-1).min(axis=1)
+    return [int(k) for k in np.argsort(d, kind="stable") if views.kept[k]]
 
 
 def depth_log_ratio(
@@ -221,7 +237,8 @@ def cross_render_check(
 ) -> list[CrossRenderCheck]:
     """For each pair (i, j): map views of i through the estimate into j, render j there, NCC against i's renders.
 
-    ``view_order[(i, j)]`` lists i's views to use, best first (default: i's kept views, evenly spread). The pair's
+    ``view_order[(i, j)]`` lists i's views to use for the NCC, best first (default: i's kept views, evenly spread);
+    the depth is compared at i's views :func:`nearest_views` j's under the estimate, whatever the order. The pair's
     colour maps come from ``cfg.colour_views`` views per direction, evenly spread and rendered small, the two
     directions' gains averaged (:func:`nerfuser_ns.appearance.fit_colour_map_directions`: why).
     """
@@ -236,8 +253,9 @@ def cross_render_check(
                 return view_order[(a, b)]
             return spread_views(views[a], cfg.self_check_views)
 
-        s_ij, d_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), intrinsics, cfg, accs[i])
-        s_ji, d_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), intrinsics, cfg, accs[j])
+        near_ij, near_ji = nearest_views(views[i], T_ij, views[j]), nearest_views(views[j], T_ji, views[i])
+        s_ij, d_ij = _cross_direction(views[i], renderers[j], T_ij, order(i, j), near_ij, intrinsics, cfg, accs[i])
+        s_ji, d_ji = _cross_direction(views[j], renderers[i], T_ji, order(j, i), near_ji, intrinsics, cfg, accs[j])
         colour_j_to_i = colour_i_to_j = None
         pixels = 0
         if cfg.colour_views > 0:

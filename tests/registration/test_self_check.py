@@ -17,7 +17,8 @@ from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.registration import pipeline as reg_pipeline
-from nerfuser_ns.registration.self_check import depth_log_ratio, failure_message, passed
+from nerfuser_ns.registration.render_cache import ViewSet
+from nerfuser_ns.registration.self_check import depth_log_ratio, failure_message, nearest_views, passed, view_nccs
 from nerfuser_ns.renderers import RenderBatch
 from nerfuser_ns.spec import FusionSpecError, read_registered_nerfs
 
@@ -69,6 +70,41 @@ def test_the_depth_check_sees_a_scale_error_the_ncc_passes(oc_renderers, oc_reco
     plain = [reg.render_views_cached(r, config.sampling, work / "renders") for r in oc_renderers]
     unmeasured = reg.cross_render_check(oc_renderers, plain, scaled, [(0, 1)], intr, config)[0]
     assert np.isnan(unmeasured.depth_disagreement) and passed(unmeasured, config)
+
+
+def test_the_depth_is_compared_at_the_views_nearest_the_other_nerf(oc_renderers, oc_record, work):
+    # Not at the views the NCC is given (in the registration, those sharing the most SfM points: the content the link
+    # was fitted to, where a wrong link still agrees).
+    config = small_config()
+    views = [reg.render_views_cached(r, config.sampling, work / "renders", depth=True) for r in oc_renderers]
+    T = np.stack([np.asarray(n["T_to_reference"]) for n in oc_record["nerfs"]])
+    centre = sim3.transform_points(T[1], views[1].c2w[:, :3, 3]).mean(axis=0)
+    T[1] = sim3.make_sim3(np.exp(0.2) * np.eye(3), centre - np.exp(0.2) * centre) @ T[1]
+    T_01 = sim3.relative_sim3(T[1], T[0])
+    near = nearest_views(views[0], T_01, views[1])
+    n = config.self_check_views
+    intr = config.sampling.intrinsics()
+    order = {(0, 1): near[::-1], (1, 0): nearest_views(views[1], sim3.invert_sim3(T_01), views[0])[::-1]}
+    check = reg.cross_render_check(oc_renderers, views, T, [(0, 1)], intr, config, view_order=order)[0]
+    at_near: list = []
+    view_nccs(views[0], oc_renderers[1], T_01, near[:n], intr, config, depths=at_near)
+    at_far: list = []
+    view_nccs(views[0], oc_renderers[1], T_01, near[::-1][:n], intr, config, depths=at_far)
+    assert check.depth_i_in_j == pytest.approx(np.median(at_near))
+    assert np.median(at_far) != pytest.approx(np.median(at_near), abs=1e-3)  # the choice of views matters here
+
+
+def test_nearest_views_orders_by_the_mapped_centres_and_skips_dropped_views(tmp_path):
+    def posed(centres):
+        c2w = np.tile(np.eye(4), (len(centres), 1, 1))
+        c2w[:, :3, 3] = centres
+        return c2w
+
+    mine = ViewSet("a", tmp_path, posed([[0, 0, 0], [5, 0, 0], [1, 0, 0], [2, 0, 0]]), ["hemisphere"] * 4,
+                   np.ones(4), np.array([True, True, False, True]))  # fmt: skip
+    other = ViewSet("b", tmp_path, posed([[10, 0, 0]]), ["hemisphere"], np.ones(1), np.ones(1, bool))
+    # mapped by a scale of 2: centres at 0, 10, 2, 4; view 2 was dropped
+    assert nearest_views(mine, sim3.make_sim3(np.eye(3), np.zeros(3), 2.0), other) == [1, 3, 0]
 
 
 def test_depth_log_ratio_is_the_links_scale_error():
