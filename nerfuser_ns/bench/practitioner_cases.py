@@ -239,13 +239,17 @@ def _frame_index(file_path: str) -> int:
 
 def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list[dict]:
     """Per capture: the SIM(3) tying its stored (transforms.json) frame to the world, COLMAP's pose noise, and the
-    true NeRF-frame -> world map of its run; with ``optimized``, also the tie through its camera-optimised poses
-    (:func:`_optimized_ground_truth`, which loads the run's model)."""
+    true NeRF-frame -> world map of its run, the same through the tie fitted to the views' rotations as well
+    (``nerf_to_world_pose``, :func:`tie_to_world`); with ``optimized``, also the tie through its camera-optimised
+    poses (:func:`_optimized_ground_truth`, which loads the run's model)."""
     out = []
     for cap in layout.captures:
         record, data_to_world, world_scale = colmap_tie(cap, case_dir)
         data_to_nerf = runs.read_dataparser_transform(run_config(case_dir, cap.name))
         record["nerf_to_world"] = sim3.compose(data_to_world, sim3.invert_sim3(data_to_nerf))
+        stored, true = _stored_and_true(cap, case_dir)[:2]
+        pose_to_world, record["pose_tie_rot_err_deg_median"], _ = tie_to_world(stored, true, world_scale, True)
+        record["nerf_to_world_pose"] = sim3.compose(pose_to_world, sim3.invert_sim3(data_to_nerf))
         if optimized:
             record.update(_optimized_ground_truth(run_config(case_dir, cap.name), cap.c2w_world, world_scale) or {})
         out.append(record)
@@ -256,11 +260,7 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, float]:
     """What COLMAP made of one capture (``ns-process-data``'s transforms.json; no trained run needed): the record of
     :func:`capture_ground_truth` without its NeRF frames, the SIM(3) tying the stored frame to the world, and the
     capture's world scale (mean distance of its true centres from their mean)."""
-    meta = json.loads(dataset_transforms(case_dir, cap.name).read_text())
-    idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
-    stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
-    true = cap.c2w_world[idx]
-    world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
+    stored, true, idx, world_scale = _stored_and_true(cap, case_dir)
     data_to_world, rot_err, centre_err = tie_to_world(stored, true, world_scale)
     record = {
         "capture": cap.name,
@@ -271,6 +271,16 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, float]:
         "colmap_bend_deg": colmap_bend_deg(stored, true, idx, world_scale),
     }
     return record, data_to_world, world_scale
+
+
+def _stored_and_true(cap, case_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """A capture's stored (COLMAP) poses, the true poses of the same views, their capture indices, and the capture's
+    world scale (mean distance of its true centres from their mean)."""
+    meta = json.loads(dataset_transforms(case_dir, cap.name).read_text())
+    idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
+    stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
+    true = cap.c2w_world[idx]
+    return stored, true, idx, float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
 
 
 def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: float) -> dict | None:
@@ -303,9 +313,16 @@ def colmap_bend_deg(stored: np.ndarray, true: np.ndarray, idx: np.ndarray, world
     return float(sim3.sim3_errors(first, second).r_err_deg)
 
 
-def tie_to_world(poses: np.ndarray, true: np.ndarray, world_scale: float) -> tuple[np.ndarray, float, float]:
+def tie_to_world(
+    poses: np.ndarray, true: np.ndarray, world_scale: float, rotations: bool = False
+) -> tuple[np.ndarray, float, float]:
     """The SIM(3) fitted to the true centres of ``poses`` (Umeyama, every view), and its residuals: median rotation
-    (deg) and median centre distance over ``world_scale`` (world units; the fit reports them in the poses' units)."""
-    est = sim3.estimate_sim3_umeyama(poses, true, robust=False)
+    (deg) and median centre distance over ``world_scale`` (world units; the fit reports them in the poses' units).
+
+    With ``rotations``, fitted to the views' rotations as well (:func:`nerfuser_ns.sim3.estimate_sim3_from_poses`:
+    rotation averaged over the views, then translation): on a capture whose centres lie near a line (a drive) the
+    centres alone leave the roll about that line loosely fixed, the rotations fix it."""
+    est = (sim3.estimate_sim3_from_poses(poses, true) if rotations
+           else sim3.estimate_sim3_umeyama(poses, true, robust=False))  # fmt: skip
     return (est.T, float(np.median(est.rot_residuals_deg)),
             float(np.median(est.centre_residuals) * est.scale / world_scale))  # fmt: skip

@@ -92,6 +92,23 @@ def test_colmap_bend_is_zero_for_a_rigid_reconstruction_and_sees_a_bent_one():
     assert colmap_bend_deg(bent[idx], true[idx], idx, 5.0) == pytest.approx(3.0, abs=0.05)
 
 
+def test_the_pose_tie_fixes_the_roll_of_a_near_collinear_capture():
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 10, 48)
+    path = np.stack([t, 0.1 * np.sin(t), 0.02 * np.cos(3 * t)], -1)  # a drive: centres near a line
+    true = sim3.make_sim3(sim3.random_rotation(rng, (48,)), path)
+    world_to_stored = sim3.random_sim3(rng)
+    stored = sim3.transform_poses(world_to_stored, true)
+    s = sim3.decompose_sim3(world_to_stored)[2]
+    stored[:, :3, 3] += rng.normal(size=(48, 3)) * 0.03 * s  # COLMAP's centre noise, 3 cm in the world
+    want = sim3.invert_sim3(world_to_stored)
+    centres = tie_to_world(stored, true, 3.0)
+    poses = tie_to_world(stored, true, 3.0, rotations=True)
+    assert sim3.sim3_errors(centres[0], want).r_err_deg > 0.3  # the roll about the line follows the noise
+    assert sim3.sim3_errors(poses[0], want).r_err_deg < 1e-6  # exact rotations fix it
+    assert centres[1] > 0.3 and poses[1] < 1e-6  # and the residuals say which tie held
+
+
 def _captured(case, captures, times=None):
     for c in captures:
         (case / "images" / c).mkdir(parents=True)
