@@ -718,51 +718,49 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
     write_text_atomic(path.with_suffix(".json"), json.dumps(records, indent=2) + "\n")
 
 
-def _pose_truth_section(records: list[dict]) -> list[str]:
-    """The registration table again, against the truth tied through the views' rotations as well as their centres."""
-    rows = [r for r in records if r["registration"].get("errors_pose")]
+def _other_truth_section(records: list[dict], key: str, name: str, text: str,
+                         residuals: list[tuple[str, str, int]]) -> list[str]:  # fmt: skip
+    """The registration table again, against another truth (errors under ``key``), with that truth's fit residuals
+    per capture (``residuals``: column header, capture record key, decimals)."""
+    rows = [r for r in records if r["registration"].get(key)]
     if not rows:
         return []
-    lines = ["", "### The same registrations against the pose truth", "",
-             "The stored truth ties each capture to the world by its camera centres alone; where those lie near a "
-             "line (a drive: the second and third singular values of the centres 1-4% of the first) the roll about "
-             "it is loosely fixed. Here each capture is tied by its views' rotations as well (rotation averaged "
-             "over the views, then translation; `sim3.estimate_sim3_from_poses`). Added after the drive results "
-             "were seen, as a diagnostic: no method or default follows from it. The residual column is that fit's "
-             "(COLMAP's rotation noise per view).", "",
-             "| case | NeRF | r_err (deg) | t_err | s_err | ok | pose fit rot err (deg, median per capture) |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    lines = ["", f"### The same registrations against the {name} truth", "", text, "",
+             "| case | NeRF | r_err (deg) | t_err | s_err | ok | " + " | ".join(h for h, _, _ in residuals) + " |",
+             "|" + " --- |" * (6 + len(residuals))]  # fmt: skip
     for r in rows:
-        rot = ", ".join(f"{c['pose_tie_rot_err_deg_median']:.3f}" for c in r["captures"])
-        for e in r["registration"]["errors_pose"]:
+        fits = " | ".join(", ".join(f"{c[k]:.{d}f}" for c in r["captures"]) for _, k, d in residuals)
+        for e in r["registration"][key]:
             lines.append(f"| {r['case']} | {_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | "
-                         f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {rot} |")
-    lines += ["", summarise(records, "errors_pose").line("Against the pose truth, ")]
+                         f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {fits} |")
+    lines += ["", summarise(records, key).line(f"Against the {name} truth, ")]
     return lines
+
+
+def _pose_truth_section(records: list[dict]) -> list[str]:
+    """The registration table again, against the truth tied through the views' rotations as well as their centres."""
+    return _other_truth_section(
+        records, "errors_pose", "pose",
+        "The stored truth ties each capture to the world by its camera centres alone; where those lie near a "
+        "line (a drive: the second and third singular values of the centres 1-4% of the first) the roll about "
+        "it is loosely fixed. Here each capture is tied by its views' rotations as well (rotation averaged "
+        "over the views, then translation; `sim3.estimate_sim3_from_poses`). Added after the drive results "
+        "were seen, as a diagnostic: no method or default follows from it. The residual column is that fit's "
+        "(COLMAP's rotation noise per view).",
+        [("pose fit rot err (deg, median per capture)", "pose_tie_rot_err_deg_median", 3)])  # fmt: skip
 
 
 def _optimized_truth_section(records: list[dict]) -> list[str]:
     """The registration table again, against the truth tied through the camera-optimised training poses."""
-    rows = [r for r in records if r["registration"].get("errors_optimized")]
-    if not rows:
-        return []
-    lines = ["", "### The same registrations against the camera-optimised truth", "",
-             "nerfacto's camera optimiser (on by default) moves the training cameras away from their stored COLMAP "
-             "poses, and the trained content may follow them. Here each "
-             "run's NeRF frame is tied to the world by a SIM(3) fitted to its optimised training poses (the "
-             "checkpoint's `camera_optimizer.pose_adjustment` applied as nerfstudio applies it) instead of its stored "
-             "ones; the residual columns are that fit's, beside the stored fit's (COLMAP's noise) above.", "",
-             "| case | NeRF | r_err (deg) | t_err | s_err | ok | optimised rot err (deg, median per capture) | "
-             "optimised centre err (median, / capture radius) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
-    for r in rows:
-        rot = ", ".join(f"{c['optimized_rot_err_deg_median']:.3f}" for c in r["captures"])
-        cen = ", ".join(f"{c['optimized_centre_err_median']:.4f}" for c in r["captures"])
-        for e in r["registration"]["errors_optimized"]:
-            lines.append(f"| {r['case']} | {_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | "
-                         f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {rot} | {cen} |")
-    lines += ["", summarise(records, "errors_optimized").line("Against the camera-optimised truth, ")]
-    return lines
+    return _other_truth_section(
+        records, "errors_optimized", "camera-optimised",
+        "nerfacto's camera optimiser (on by default) moves the training cameras away from their stored COLMAP "
+        "poses, and the trained content may follow them. Here each "
+        "run's NeRF frame is tied to the world by a SIM(3) fitted to its optimised training poses (the "
+        "checkpoint's `camera_optimizer.pose_adjustment` applied as nerfstudio applies it) instead of its stored "
+        "ones; the residual columns are that fit's, beside the stored fit's (COLMAP's noise) above.",
+        [("optimised rot err (deg, median per capture)", "optimized_rot_err_deg_median", 3),
+         ("optimised centre err (median, / capture radius)", "optimized_centre_err_median", 4)])  # fmt: skip
 
 
 def _content_section(records: list[dict]) -> list[str]:
