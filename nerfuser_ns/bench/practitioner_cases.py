@@ -244,24 +244,28 @@ def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list
     poses (:func:`_optimized_ground_truth`, which loads the run's model)."""
     out = []
     for cap in layout.captures:
-        record, data_to_world, world_scale = colmap_tie(cap, case_dir)
-        data_to_nerf = runs.read_dataparser_transform(run_config(case_dir, cap.name))
-        record["nerf_to_world"] = sim3.compose(data_to_world, sim3.invert_sim3(data_to_nerf))
-        stored, true = _stored_and_true(cap, case_dir)[:2]
-        pose_to_world, record["pose_tie_rot_err_deg_median"], _ = tie_to_world(stored, true, world_scale, True)
-        record["nerf_to_world_pose"] = sim3.compose(pose_to_world, sim3.invert_sim3(data_to_nerf))
+        record, data_to_world, pose_to_world, world_scale = colmap_tie(cap, case_dir)
+        nerf_to_data = sim3.invert_sim3(runs.read_dataparser_transform(run_config(case_dir, cap.name)))
+        record["nerf_to_world"] = sim3.compose(data_to_world, nerf_to_data)
+        record["nerf_to_world_pose"] = sim3.compose(pose_to_world, nerf_to_data)
         if optimized:
             record.update(_optimized_ground_truth(run_config(case_dir, cap.name), cap.c2w_world, world_scale) or {})
         out.append(record)
     return out
 
 
-def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, float]:
+def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float]:
     """What COLMAP made of one capture (``ns-process-data``'s transforms.json; no trained run needed): the record of
-    :func:`capture_ground_truth` without its NeRF frames, the SIM(3) tying the stored frame to the world, and the
-    capture's world scale (mean distance of its true centres from their mean)."""
-    stored, true, idx, world_scale = _stored_and_true(cap, case_dir)
+    :func:`capture_ground_truth` without its NeRF frames, the SIM(3) tying the stored frame to the world by the
+    centres and by the poses (:func:`tie_to_world`), and the capture's world scale (mean distance of its true centres
+    from their mean)."""
+    meta = json.loads(dataset_transforms(case_dir, cap.name).read_text())
+    idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
+    stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
+    true = cap.c2w_world[idx]
+    world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
     data_to_world, rot_err, centre_err = tie_to_world(stored, true, world_scale)
+    pose_to_world, pose_rot_err, _ = tie_to_world(stored, true, world_scale, rotations=True)
     record = {
         "capture": cap.name,
         "views": cap.num_views,
@@ -269,18 +273,9 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, float]:
         "colmap_rot_err_deg_median": rot_err,
         "colmap_centre_err_median": centre_err,
         "colmap_bend_deg": colmap_bend_deg(stored, true, idx, world_scale),
+        "pose_tie_rot_err_deg_median": pose_rot_err,
     }
-    return record, data_to_world, world_scale
-
-
-def _stored_and_true(cap, case_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """A capture's stored (COLMAP) poses, the true poses of the same views, their capture indices, and the capture's
-    world scale (mean distance of its true centres from their mean)."""
-    meta = json.loads(dataset_transforms(case_dir, cap.name).read_text())
-    idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
-    stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
-    true = cap.c2w_world[idx]
-    return stored, true, idx, float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
+    return record, data_to_world, pose_to_world, world_scale
 
 
 def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: float) -> dict | None:
