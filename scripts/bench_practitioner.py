@@ -679,8 +679,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         for e in errs:
             lines.append(f"| {r['case']} | {_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | "
                          f"{e['s_err']:.5f} | {'FAIL' if e['failure'] else 'ok'} | {col} | {cen} | {bend} | {posed} |")
-    lines += _optimized_truth_section(records)
-    lines += _pose_truth_section(records)
+    for truth in OTHER_TRUTHS:
+        lines += _other_truth_section(records, *truth)
     lines += _content_section(records)
     lines += ["", "## Blending (PSNR from `ns-eval`'s JSON, estimated registration, world-posed test views)", "",
               "The fused model's defaults when the case ran: appearance matching (ours) off, unless the case is "
@@ -737,30 +737,26 @@ def _other_truth_section(records: list[dict], key: str, name: str, text: str,
     return lines
 
 
-def _pose_truth_section(records: list[dict]) -> list[str]:
-    """The registration table again, against the truth tied through the views' rotations as well as their centres."""
-    return _other_truth_section(
-        records, "errors_pose", "pose",
-        "The stored truth ties each capture to the world by its camera centres alone; where those lie near a "
-        "line (a drive: the second and third singular values of the centres 1-4% of the first) the roll about "
-        "it is loosely fixed. Here each capture is tied by its views' rotations as well (rotation averaged "
-        "over the views, then translation; `sim3.estimate_sim3_from_poses`). Added after the drive results "
-        "were seen, as a diagnostic: no method or default follows from it. The residual column is that fit's "
-        "(COLMAP's rotation noise per view).",
-        [("pose fit rot err (deg, median per capture)", "pose_tie_rot_err_deg_median", 3)])  # fmt: skip
-
-
-def _optimized_truth_section(records: list[dict]) -> list[str]:
-    """The registration table again, against the truth tied through the camera-optimised training poses."""
-    return _other_truth_section(
-        records, "errors_optimized", "camera-optimised",
-        "nerfacto's camera optimiser (on by default) moves the training cameras away from their stored COLMAP "
-        "poses, and the trained content may follow them. Here each "
-        "run's NeRF frame is tied to the world by a SIM(3) fitted to its optimised training poses (the "
-        "checkpoint's `camera_optimizer.pose_adjustment` applied as nerfstudio applies it) instead of its stored "
-        "ones; the residual columns are that fit's, beside the stored fit's (COLMAP's noise) above.",
-        [("optimised rot err (deg, median per capture)", "optimized_rot_err_deg_median", 3),
-         ("optimised centre err (median, / capture radius)", "optimized_centre_err_median", 4)])  # fmt: skip
+OTHER_TRUTHS = [
+    ("errors_optimized", "camera-optimised",
+     "nerfacto's camera optimiser (on by default) moves the training cameras away from their stored COLMAP "
+     "poses, and the trained content may follow them. Here each "
+     "run's NeRF frame is tied to the world by a SIM(3) fitted to its optimised training poses (the "
+     "checkpoint's `camera_optimizer.pose_adjustment` applied as nerfstudio applies it) instead of its stored "
+     "ones; the residual columns are that fit's, beside the stored fit's (COLMAP's noise) above.",
+     [("optimised rot err (deg, median per capture)", "optimized_rot_err_deg_median", 3),
+      ("optimised centre err (median, / capture radius)", "optimized_centre_err_median", 4)]),
+    ("errors_pose", "pose",
+     "The stored truth ties each capture to the world by its camera centres alone; where those lie near a "
+     "line (a drive: the second and third singular values of the centres 1-4% of the first) the roll about "
+     "it is loosely fixed. Here each capture is tied by its views' rotations as well (rotation averaged "
+     "over the views, then translation; `sim3.estimate_sim3_from_poses`). Added after the drive results "
+     "were seen, as a diagnostic: no method or default follows from it. The residual column is that fit's "
+     "(COLMAP's rotation noise per view).",
+     [("pose fit rot err (deg, median per capture)", "pose_tie_rot_err_deg_median", 3)]),
+]  # fmt: skip
+"""The truths the registration table is repeated against (:func:`_other_truth_section`'s arguments after the records):
+the record key of the errors, the truth's name, what it is, and its fit's residual columns."""
 
 
 def _content_section(records: list[dict]) -> list[str]:
