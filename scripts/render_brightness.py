@@ -15,21 +15,24 @@ and with each image's own embedding.
 
 Example:
     python scripts/render_brightness.py outputs/bench/appearance_bracket/jittered_registration_work
+    python scripts/render_brightness.py --registrations outputs/practitioner/drive-9/registration.json
     python scripts/render_brightness.py --configs demo/runs/capture_a/nerfacto-cpu/demo/config.yml
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 import tyro
+from PIL import Image
 
 from nerfuser_ns import runs
+from nerfuser_ns.registration import render_folders
 from nerfuser_ns.registration.reference_colour import fit_reference_colour, read_image
+from nerfuser_ns.registration.render_cache import POSES_FILE, ViewSet
 
 MAX_POSE_DIFFERENCE = 0.05
 """Largest element-wise difference of a render's camera from the nearest training camera (NeRF units)."""
@@ -40,33 +43,50 @@ class RenderBrightness:
     """Per run, linear-RGB ratio of its renders at its training poses to its training images."""
 
     work_dirs: tyro.conf.Positional[list[Path]] = field(default_factory=list)
-    """Work folders of ns-nerfuser-register (holding renders/<key>/poses.json)."""
+    """Work folders of ns-nerfuser-register (holding renders/<key>/poses.json) whose renders name their run by its
+    config.yml (older registrations); for newer ones, which name runs by experiment/method/timestamp, pass the
+    registration file with --registrations."""
+    registrations: list[Path] = field(default_factory=list)
+    """Registration files (registration.json): each NeRF's render folder, read with the run the file names."""
     configs: list[Path] = field(default_factory=list)
     """Runs to render at their training cameras, with the average and with each image's own appearance embedding."""
     views: int = 12
     """--configs: training cameras rendered per run (evenly spaced)."""
 
 
-def brightness(folder: Path) -> tuple[str, int, np.ndarray]:
-    """The run of one render folder, the views compared, and the per-channel ratio render / training image."""
-    meta = json.loads((folder / "poses.json").read_text())
-    views = runs.training_views(meta["renderer"])
-    cameras = views.cameras.camera_to_worlds.numpy()
-    accumulation = np.load(folder / "accumulation.npz")
-    accumulation = accumulation[accumulation.files[0]]
+def brightness(folder: Path, config: Path | None = None) -> tuple[str, int, np.ndarray]:
+    """The run of one render folder, the views compared, and the per-channel ratio render / training image
+    (``config``: the run's config.yml; default: the run the folder records)."""
+    rendered = ViewSet.from_folder(folder)
+    views = runs.training_views(config if config is not None else rendered.name)
+    cameras = views.cameras.camera_to_worlds.cpu().numpy()
+    accumulation = rendered.load_accumulation()
     renders, images = [], []
-    for k, view in enumerate(meta["views"]):
-        if view["source"] != "training":
+    for k, source in enumerate(rendered.sources):
+        if source != "training":
             continue
-        c2w = np.asarray(view["c2w"])[:3]
+        c2w = rendered.c2w[k, :3]
         nearest = int(np.argmin(np.abs(cameras - c2w[None]).sum(axis=(1, 2))))
         if np.abs(cameras[nearest] - c2w).max() > MAX_POSE_DIFFERENCE:
             continue
-        render, image = read_image(folder / view["file"]), read_image(views.image_filenames[nearest])
-        if render.shape == image.shape:
-            renders.append((render, accumulation[k]))
-            images.append(image)
-    return meta["renderer"], len(renders), _render_over_image(renders, images)
+        render, image = rendered.load_rgb(k).astype(np.float64), read_image(views.image_filenames[nearest])
+        acc = accumulation[k]
+        if render.shape != image.shape:
+            (h, w), (ih, iw) = render.shape[:2], image.shape[:2]
+            if abs(w / h - iw / ih) > 0.01 * iw / ih:
+                continue
+            # The render camera is the training camera at another size (same field of view): compare at the image's.
+            render = np.stack([_resize(render[..., c], iw, ih) for c in range(3)], axis=-1)
+            acc = _resize(acc, iw, ih)
+        renders.append((render, acc))
+        images.append(image)
+    return rendered.name, len(renders), _render_over_image(renders, images)
+
+
+def _resize(channel: np.ndarray, width: int, height: int) -> np.ndarray:
+    """One float channel resampled to width x height (bilinear)."""
+    return np.asarray(Image.fromarray(channel.astype(np.float32), mode="F").resize((width, height), Image.BILINEAR),
+                      dtype=np.float64)  # fmt: skip
 
 
 def _render_over_image(renders: list, images: list) -> np.ndarray:
@@ -103,16 +123,21 @@ def main(cfg: RenderBrightness) -> None:
         ratios = embedding_brightness(config, cfg.views)
         print(f"{config}: render / training image per channel, "
               + ", ".join(f"{k} {np.round(v, 3).tolist()}" for k, v in ratios.items()))
+    folders = [(folder, None) for work in cfg.work_dirs for folder in sorted((work / "renders").glob("*/"))
+               if (folder / POSES_FILE).is_file()]  # fmt: skip
+    for path in cfg.registrations:
+        folders += [(f.folder, f.config) for f in render_folders(path) if f.folder is not None]
     seen = set()
-    for work in cfg.work_dirs:
-        for folder in sorted((work / "renders").glob("*/")):
-            if not (folder / "poses.json").is_file():
-                continue
-            run, count, ratio = brightness(folder)
-            if count == 0 or (run, tuple(np.round(ratio, 3))) in seen:
-                continue
-            seen.add((run, tuple(np.round(ratio, 3))))
-            print(f"{run}: {count} views, render / training image per channel {np.round(ratio, 3).tolist()}")
+    for folder, config in folders:
+        try:
+            run, count, ratio = brightness(folder, config)
+        except runs.RunLoadError as e:
+            raise SystemExit(f"{folder}: its run cannot be loaded ({e}); pass the registration file with "
+                             f"--registrations") from None  # fmt: skip
+        if count == 0 or (run, tuple(np.round(ratio, 3))) in seen:
+            continue
+        seen.add((run, tuple(np.round(ratio, 3))))
+        print(f"{run}: {count} views, render / training image per channel {np.round(ratio, 3).tolist()}")
 
 
 if __name__ == "__main__":
