@@ -62,10 +62,12 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
              "without the part of the error that is nerfacto's camera optimiser moving the cameras, and with them "
              "the content, off the COLMAP frame). *r_err (pose tie)*: against the pose truth (each capture tied by its "
              "views' rotations as well as their centres, which fixes the roll of a near-collinear drive; '-' for "
-             "records scored before it was).", "",
-             "| case | r_err (deg) | t_err | s_err | ok | r_err (cam.-opt.) | r_err (pose tie) | "
+             "records scored before it was). *r_err (content)*: against the content truth (each run registered to "
+             "the exact scene placed by its stored truth, `--stages content`: where its trained content lies, "
+             "with that registration's own error; '-' where the stage did not run).", "",
+             "| case | r_err (deg) | t_err | s_err | ok | r_err (cam.-opt.) | r_err (pose tie) | r_err (content) | "
              "COLMAP rot noise (deg) | COLMAP bend (deg) | Nearest | IDW-Sample | registered at | report |",
-             "|" + " --- |" * 13]  # fmt: skip
+             "|" + " --- |" * 14]  # fmt: skip
     for r, src in rows:
         noise = max(c["colmap_rot_err_deg_median"] for c in r["captures"])
         bend = max(c.get("colmap_bend_deg", float("nan")) for c in r["captures"])
@@ -73,15 +75,16 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
         link = f"[{src.stem}]({src.with_suffix('.md').name})"
         errs = r["registration"]["errors"]
         if errs is None:
-            lines.append(f"| {r['case']} | refused | | | FAIL | - | - | {noise:.3f} | {bend:.2f} | - | - | "
+            lines.append(f"| {r['case']} | refused | | | FAIL | - | - | - | {noise:.3f} | {bend:.2f} | - | - | "
                          f"{r.get('registered_at_commit')} | {link} |")  # fmt: skip
             continue
         optimized = {e["nerf"]: e["r_err_deg"] for e in r["registration"].get("errors_optimized") or []}
         pose = {e["nerf"]: e["r_err_deg"] for e in r["registration"].get("errors_pose") or []}
+        content = {e["nerf"]: e["r_err_deg"] for e in r["registration"].get("errors_content") or []}
         for e in errs:
             lines.append(f"| {r['case']} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | {e['s_err']:.5f} | "
                          f"{'FAIL' if e['failure'] else 'ok'} | {_fmt(optimized.get(e['nerf']), 4)} | "
-                         f"{_fmt(pose.get(e['nerf']), 4)} | {noise:.3f} | "
+                         f"{_fmt(pose.get(e['nerf']), 4)} | {_fmt(content.get(e['nerf']), 4)} | {noise:.3f} | "
                          f"{bend:.2f} | "
                          f"{_fmt(b.get('nearest'), 2)} | {_fmt(b.get('idw_sample'), 2)} | "
                          f"{r.get('registered_at_commit')} | {link} |")  # fmt: skip
@@ -91,8 +94,9 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
     for layout in sorted({r["spec"].rsplit(":", 1)[0] for r in records}):
         lines.append("- " + summarise([r for r in records if r["spec"].startswith(layout + ":")]).line(f"{layout}: "))
     lines += ["", summarise(records, "errors_optimized").line("Against the camera-optimised truth, ")]
-    if any(r["registration"].get("errors_pose") for r in records):
-        lines += ["", summarise(records, "errors_pose").line("Against the pose truth (the cases scored with it), ")]
+    for key, truth in (("errors_pose", "pose"), ("errors_content", "content")):
+        if any(r["registration"].get(key) for r in records):
+            lines += ["", summarise(records, key).line(f"Against the {truth} truth (the cases scored with it), ")]
     blends = summary.idw_sample_over_nearest
     lines += ["", f"IDW-Sample >= Nearest on {sum(blends)} of {len(blends)} cases with a blend.", "",
               "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok else 'NOT met'}"

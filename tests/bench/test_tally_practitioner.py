@@ -17,11 +17,12 @@ def tally(load_script):
 
 
 def _record(case: str, r: float | None, failure: bool = False, nearest: float = 20.0, idw_sample: float = 21.0,
-            optimized: float | None = None, pose: float | None = None) -> dict:  # fmt: skip
+            optimized: float | None = None, pose: float | None = None,
+            content: float | None = None) -> dict:  # fmt: skip
     errors = None if r is None else [{"nerf": "b", "r_err_deg": r, "t_err": r / 10, "s_err": r / 100,
                                       "failure": failure}]  # fmt: skip
     registration = {"errors": errors}
-    for key, value in (("errors_optimized", optimized), ("errors_pose", pose)):
+    for key, value in (("errors_optimized", optimized), ("errors_pose", pose), ("errors_content", content)):
         if value is not None:
             registration[key] = [{"nerf": "b", "r_err_deg": value, "t_err": 0.0, "s_err": 0.0, "failure": False}]
     return {"case": case, "spec": ":".join(case.rsplit("-", 1)),
@@ -56,7 +57,7 @@ def test_summary_against_another_truth_leaves_out_the_cases_without_it():
 def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_path):
     first, second = tmp_path / "bench_practitioner_a.json", tmp_path / "bench_practitioner_b.json"
     first.write_text(json.dumps([_record("street-1", 0.3), _record("object-centric-1", 0.08)]))
-    second.write_text(json.dumps([_record("street-1", 0.06, optimized=0.04, pose=0.03),
+    second.write_text(json.dumps([_record("street-1", 0.06, optimized=0.04, pose=0.03, content=0.02),
                                   _record("room-3", 117.0, failure=True)]))  # fmt: skip
     rows = tally.collect([first, second])
     assert [(r["case"], src) for r, src in rows] == [("street-1", second), ("object-centric-1", first),
@@ -64,11 +65,13 @@ def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_
     out = tmp_path / "tally.md"
     tally.write_tally(rows, out)
     text = out.read_text()
-    assert "| street-1 | 0.0600 | 0.00600 | 0.00060 | ok | 0.0400 | 0.0300 |" in text and "0.3000" not in text
-    assert "| room-3 | 117.0000 | 11.70000 | 1.17000 | FAIL | - | - |" in text
+    assert "| street-1 | 0.0600 | 0.00600 | 0.00060 | ok | 0.0400 | 0.0300 | 0.0200 |" in text and "0.3000" not in text
+    assert "| room-3 | 117.0000 | 11.70000 | 1.17000 | FAIL | - | - | - |" in text
     assert ("Against the camera-optimised truth, 1 case(s), 1 registered NeRF(s): median r_err 0.0400 deg" in text)
     assert ("Against the pose truth (the cases scored with it), 1 case(s), 1 registered NeRF(s): median r_err "
             "0.0300" in text)  # fmt: skip
+    assert ("Against the content truth (the cases scored with it), 1 case(s), 1 registered NeRF(s): median r_err "
+            "0.0200" in text)  # fmt: skip
     assert "[bench_practitioner_b](bench_practitioner_b.md)" in text
     assert text.rstrip().endswith("3 case(s), 3 registered NeRF(s): median r_err 0.0800 deg, t_err 0.00800, "
                                   "s_err 0.00080; success rate 0.67.")  # fmt: skip
