@@ -565,10 +565,15 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
         record["content_truth"] = {k: {m: v[m] for m in ("r_deg", "t", "s", "source", "seconds")}
                                    for k, v in found.items()}  # fmt: skip
         content_to_world = content_ground_truth(case_dir, gt)
-        if reg_path.is_file() and content_to_world is not None:
+        if content_to_world is not None:
             for g, T in zip(gt, content_to_world, strict=True):
                 g["nerf_to_world_content"] = T
-            record["registration"]["errors_content"] = _errors(read_registration(reg_path), gt, "nerf_to_world_content")
+            if reg_path.is_file():
+                record["registration"]["errors_content"] = _errors(read_registration(reg_path), gt,
+                                                                   "nerf_to_world_content")  # fmt: skip
+            elif rejected_registration(case_dir).is_file():
+                record["registration"]["rejected_errors_content"] = _errors(
+                    read_registration(rejected_registration(case_dir)), gt, "nerf_to_world_content")
     truth_blends = {label: _blend_table(path) for label, path in truth_evals(case_dir).items() if path.is_file()}
     if truth_blends:
         record["truth_blends"] = truth_blends
@@ -779,6 +784,10 @@ def _content_section(records: list[dict]) -> list[str]:
             lines.append(f"- {r['case']}, {_short(e['nerf'])}, the registration against the content's frames (each "
                          f"run's stored truth moved by the SIM(3) above): r_err {e['r_err_deg']:.4f} deg, t_err "
                          f"{e['t_err']:.5f}, s_err {e['s_err']:.5f}")
+        for e in r["registration"].get("rejected_errors_content") or []:
+            lines.append(f"- {r['case']}, {_short(e['nerf'])}, the refused solution against the content's frames: "
+                         f"r_err {e['r_err_deg']:.4f} deg, t_err {e['t_err']:.5f}, s_err {e['s_err']:.5f} "
+                         f"({'a failure' if e['failure'] else 'a success'} by the paper's rule)")
     return lines
 
 
