@@ -537,8 +537,9 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     captures = [{k: v for k, v in g.items() if not k.startswith("nerf_to_world")} for g in gt]
     record: dict = {"case": case_dir.name, "spec": spec, "captures": captures, "case_dir": str(case_dir)}
     reg_path = case_dir / "registration.json"
+    solution = None  # the registration, or the solution the checks refused, scored against the content frames below
     if reg_path.is_file():
-        reg = read_registration(reg_path)
+        reg = solution = read_registration(reg_path)
         record["registration"] = {"errors": _errors(reg, gt, "nerf_to_world"),
                                   "sampling_choice": reg.get("sampling_choice"), "timings_s": reg.get("timings_s"),
                                   "attempts": _attempts(reg.get("sampling_choice"), reg["reference"]["index"], gt),
@@ -550,7 +551,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
         record["registration"] = {"errors": None, "refused": (case_dir / "register_failed.txt").is_file()}
         rejected = rejected_registration(case_dir)
         if rejected.is_file():  # the solution the checks refused, against the same truth
-            rej = read_registration(rejected)
+            rej = solution = read_registration(rejected)
             record["registration"].update(rejected_errors=_errors(rej, gt, "nerf_to_world"),
                                           rejected_mode=rej["settings"]["mode"],
                                           sampling_choice=rej.get("sampling_choice"),
@@ -568,12 +569,9 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
         if content_to_world is not None:
             for g, T in zip(gt, content_to_world, strict=True):
                 g["nerf_to_world_content"] = T
-            if reg_path.is_file():
-                record["registration"]["errors_content"] = _errors(read_registration(reg_path), gt,
-                                                                   "nerf_to_world_content")  # fmt: skip
-            elif rejected_registration(case_dir).is_file():
-                record["registration"]["rejected_errors_content"] = _errors(
-                    read_registration(rejected_registration(case_dir)), gt, "nerf_to_world_content")
+            if solution is not None:
+                key = "errors_content" if reg_path.is_file() else "rejected_errors_content"
+                record["registration"][key] = _errors(solution, gt, "nerf_to_world_content")
     truth_blends = {label: _blend_table(path) for label, path in truth_evals(case_dir).items() if path.is_file()}
     if truth_blends:
         record["truth_blends"] = truth_blends
