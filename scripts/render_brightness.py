@@ -85,7 +85,7 @@ def brightness(folder: Path, config: Path | None = None) -> tuple[str, int, np.n
 
 def _resize(channel: np.ndarray, width: int, height: int) -> np.ndarray:
     """One float channel resampled to width x height (bilinear)."""
-    return np.asarray(Image.fromarray(channel.astype(np.float32), mode="F").resize((width, height), Image.BILINEAR),
+    return np.asarray(Image.fromarray(channel.astype(np.float32)).resize((width, height), Image.Resampling.BILINEAR),
                       dtype=np.float64)  # fmt: skip
 
 
