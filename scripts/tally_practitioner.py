@@ -48,6 +48,10 @@ def collect(paths: list[Path]) -> list[tuple[dict, Path]]:
     return list(found.values())
 
 
+OTHER_TRUTHS = ("errors_optimized", "errors_pose", "errors_content")
+"""The record keys of the registration's errors against the other truths, in the order of the tally's columns."""
+
+
 def _fmt(x: float | None, digits: int) -> str:
     return "-" if x is None else f"{x:.{digits}f}"
 
@@ -75,17 +79,14 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
         link = f"[{src.stem}]({src.with_suffix('.md').name})"
         errs = r["registration"]["errors"]
         if errs is None:
-            lines.append(f"| {r['case']} | refused | | | FAIL | - | - | - | {noise:.3f} | {bend:.2f} | - | - | "
-                         f"{r.get('registered_at_commit')} | {link} |")  # fmt: skip
+            lines.append(f"| {r['case']} | refused | | | FAIL | {' | '.join('-' for _ in OTHER_TRUTHS)} | "
+                         f"{noise:.3f} | {bend:.2f} | - | - | {r.get('registered_at_commit')} | {link} |")  # fmt: skip
             continue
-        optimized = {e["nerf"]: e["r_err_deg"] for e in r["registration"].get("errors_optimized") or []}
-        pose = {e["nerf"]: e["r_err_deg"] for e in r["registration"].get("errors_pose") or []}
-        content = {e["nerf"]: e["r_err_deg"] for e in r["registration"].get("errors_content") or []}
+        other = [{e["nerf"]: e["r_err_deg"] for e in r["registration"].get(key) or []} for key in OTHER_TRUTHS]
         for e in errs:
             lines.append(f"| {r['case']} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | {e['s_err']:.5f} | "
-                         f"{'FAIL' if e['failure'] else 'ok'} | {_fmt(optimized.get(e['nerf']), 4)} | "
-                         f"{_fmt(pose.get(e['nerf']), 4)} | {_fmt(content.get(e['nerf']), 4)} | {noise:.3f} | "
-                         f"{bend:.2f} | "
+                         f"{'FAIL' if e['failure'] else 'ok'} | "
+                         f"{' | '.join(_fmt(o.get(e['nerf']), 4) for o in other)} | {noise:.3f} | {bend:.2f} | "
                          f"{_fmt(b.get('nearest'), 2)} | {_fmt(b.get('idw_sample'), 2)} | "
                          f"{r.get('registered_at_commit')} | {link} |")  # fmt: skip
     records = [r for r, _ in rows]
