@@ -9,8 +9,8 @@ SIM(3)s by bundle adjustment over each NeRF's rigid camera set (:mod:`.refine`, 
 -> self-check by cross-rendering (SfM can merge unrelated content into one confident, wrong model; :mod:`.self_check`)
 -> one JSON registration file, assembled (:mod:`.assemble`) and written atomically (:mod:`.record`). :mod:`.pipeline`
 composes them; :mod:`.config` holds the settings and errors. Ours beside the paper's SfM: the known-geometry mode
-(:mod:`.known_geometry`, :mod:`.retrieval`, steps shared in :mod:`.pairwise`) and, for many NeRFs, the graph mode
-(:mod:`.graph`, :mod:`.pose_graph`, :mod:`.distributed`).
+(:mod:`.known_geometry`, :mod:`.retrieval`, steps shared in :mod:`.pairwise`, then :mod:`.colocated`) and, for
+many NeRFs, the graph mode (:mod:`.graph`, :mod:`.pose_graph`, :mod:`.distributed`).
 
 Anything a renderer of the :class:`nerfuser_ns.renderers.Renderer` protocol can render registers: trained nerfstudio
 runs (:class:`~nerfuser_ns.renderers.NerfstudioRenderer`) or ground-truth scenes for tests.

@@ -109,7 +109,7 @@ def build_result(
     render_s = [vs.render_seconds for vs in views]
     compute = {"render": None if None in render_s else float(sum(render_s))}
     compute.update({step: sfm.timings.get(step) for step in ("features", "matching", "mapping")})
-    compute.update({step: timings[step] for step in ("solve", "direct", "self_check") if step in timings})
+    compute.update({step: timings[step] for step in ("solve", "colocated", "direct", "self_check") if step in timings})
     return RegistrationResult(
         created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
         reference=config.reference % k,

@@ -230,6 +230,49 @@ class DirectConfig:
 
 
 @dataclass
+class ColocatedConfig:
+    """Re-render refinement of each linked NeRF pair (ours): each NeRF rendered with depth at the other's views mapped
+    through the link, the co-located renders' optical-flow correspondences lifted with each NeRF's own depth, the link
+    re-fitted by RANSAC on them (:mod:`.colocated`)."""
+
+    enabled: bool = True
+    """Run it in mode known-geometry (the automatic choice's last step, after every SfM was refused), after the joint
+    solve and its refinement, before the self-check (--colocated.no-enabled: off)."""
+    sfm: bool = False
+    """Also run it in mode sfm, after the checks that need no renders and before the direct alignment (off by
+    default: on our streets and objects the SfM's links are good to 0.1-0.2 deg, finer than this refinement was
+    measured)."""
+    views: int = 6
+    """Views per direction and pair: each NeRF's views whose centres lie nearest the other's under the link."""
+    iterations: int = 1
+    """Render-and-fit rounds at most (each round renders at the link the previous one found). One: on the development
+    drive (drive-10, stock nerfacto on COLMAP-posed captures, one of them bent 3.7 deg by COLMAP) the first round took
+    the refused known-geometry link from 5.6 to 1.7 deg off the runs' content frames (5.9 to 0.9 off the stored
+    truth); a second round moved it 2.4 deg, away from both truths (so did a second round of a 3D-3D fit alone)."""
+    stride: int = 4
+    """Flow correspondences are read every this many pixels."""
+    max_flow_error_px: float = 1.0
+    """... and kept where the backward flow returns within this many pixels of the start."""
+    min_accumulation: float = 0.95
+    """A correspondence's depth is trusted only where the render is this opaque (in its 3x3 neighbourhood) ..."""
+    max_depth_step: float = 0.05
+    """... and where the depth varies by at most this fraction of itself over the neighbourhood (no edge)."""
+    ransac_max_error: float = 0.05
+    """RANSAC inlier threshold (gross flow errors only: the bundle adjustment fits the rest), as a fraction of the
+    matches' median distance from their cameras."""
+    min_inliers: int = 30
+    """A round with fewer inlier matches keeps the link it started from (and ends the refinement)."""
+    loss_scale_px: float = 1.0
+    """The bundle adjustment's soft-L1 loss scale (pixels), as the other refinements'."""
+    min_change_deg: float = 0.05
+    """Stop when a round turns the link by less than this ..."""
+    min_change: float = 0.002
+    """... and moves the inliers' median point by less than this fraction of the matches' median camera distance."""
+    seed: int = 0
+    """RANSAC seed."""
+
+
+@dataclass
 class GraphConfig:
     """Registration of many NeRFs as a SIM(3) pose graph: candidate NeRF pairs from the renders' visual words (or the
     neighbours given), each pair registered on known geometry (the known-geometry settings apply), the pairwise
@@ -309,6 +352,8 @@ class RegistrationConfig:
     """Refinement: soft-L1 loss scale in pixels (reprojection errors well above it barely pull)."""
     direct: DirectConfig = field(default_factory=DirectConfig)
     """Direct photometric alignment after the refinement (mode sfm, ours)."""
+    colocated: ColocatedConfig = field(default_factory=ColocatedConfig)
+    """Re-render refinement at co-located views (ours; mode known-geometry by default)."""
     camera_check: bool = True
     """Fail when a NeRF's SfM cameras disagree with its final transform beyond the paper's failure rule (their
     median: 5 deg or 0.2 reference units): the refinement then followed points seen across NeRFs that the cameras

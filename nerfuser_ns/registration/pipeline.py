@@ -8,7 +8,8 @@ One attempt (:func:`register_once`), mode ``sfm`` (the paper's): render
 (:mod:`~nerfuser_ns.registration.record`). Mode ``known-geometry`` (ours, :func:`register_known_geometry`): render
 with depth -> keypoints lifted to 3D, candidate view pairs, 3D-3D matches, SIM(3) hypotheses scored by the self-check
 (:mod:`~nerfuser_ns.registration.known_geometry`, :mod:`~nerfuser_ns.registration.retrieval`) -> joint solve ->
-rigid-set bundle adjustment on the matches -> self-check -> the record. Mode ``graph`` (ours, for many NeRFs,
+rigid-set bundle adjustment on the matches -> re-render refinement at co-located views
+(:mod:`~nerfuser_ns.registration.colocated`) -> self-check -> the record. Mode ``graph`` (ours, for many NeRFs,
 :func:`register_graph`): render with depth -> keypoints lifted to 3D -> candidate NeRF pairs (retrieval, or the
 neighbours given) -> each pair registered on known geometry and cross-render checked (an edge, or a rejected pair) ->
 cycle check and robust pose-graph solve (:mod:`~nerfuser_ns.registration.pose_graph`) -> self-check -> the record.
@@ -27,6 +28,7 @@ from rich.console import Console
 
 from nerfuser_ns import sim3
 from nerfuser_ns.registration.assemble import build_known_geometry_result, build_result
+from nerfuser_ns.registration.colocated import refine_colocated
 from nerfuser_ns.registration.config import (
     CONSOLE,
     DEFAULT_RENDER_SIZE,
@@ -280,6 +282,12 @@ def register_once(
     early = camera_failure_of(views, estimates, T_to_C, T_to_ref, [r.name for r in renderers], config)
     models = model_failure(views, sfm, T_to_ref, config) if config.model_check and early is None else None
     refused = early or models
+    colocated = None
+    if config.colocated.enabled and config.colocated.sfm and refused is None and depth:  # 4c. re-render refinement
+        t0 = time.perf_counter()
+        T_to_ref, colocated = refine_colocated(renderers, views, T_to_ref, tree, ref, intr, config.colocated, console)
+        T_to_C = T_to_C[ref] @ T_to_ref
+        timings["colocated"] = time.perf_counter() - t0
     direct = None
     if config.direct.enabled and refused is None:  # 4b. direct alignment of the tree's pairs
         t0 = time.perf_counter()
@@ -300,6 +308,7 @@ def register_once(
         refinement=refinement, overlap=overlap, checks=checks, config=config, intrinsics=intr, timings=timings,
     )
     result.direct = direct
+    result.colocated = colocated
     failure = check_failure(result, checks, config, models)
     if failure is not None:
         raise RegistrationFailed(failure, result)
@@ -408,6 +417,11 @@ def register_known_geometry(
             T_to_ref, refinement = refine_on_matches(views, feats, linked, T_to_ref, ref, intr,
                                                      config.refine_loss_scale_px, depth_sigma)  # fmt: skip
     timings["solve"] = time.perf_counter() - t0
+    colocated = None
+    if config.colocated.enabled:  # re-render refinement of the tree's pairs
+        t0 = time.perf_counter()
+        T_to_ref, colocated = refine_colocated(renderers, views, T_to_ref, tree, ref, intr, config.colocated, console)
+        timings["colocated"] = time.perf_counter() - t0
 
     checked_pairs = tree if config.self_check_views > 0 else []
     t0 = time.perf_counter()
@@ -430,6 +444,7 @@ def register_known_geometry(
         overlap=overlap, checks=checks, config=config, timings=timings, known_geometry=summary,
         refinement=refinement,
     )
+    result.colocated = colocated
     failure = check_failure(result, checks, config)
     if failure is not None:
         raise RegistrationFailed(failure, result)

@@ -352,6 +352,8 @@ class RegistrationResult:
     direct: dict | None = None
     """Direct alignment (``--direct.enabled``): per NeRF pair what it did (:class:`.direct.PairAlignment`), and its
     settings."""
+    colocated: dict | None = None
+    """Re-render refinement (``--colocated.enabled``): per NeRF pair its rounds (:class:`.colocated.PairRefinement`)."""
     reference_colour: dict | None = None
     """Appearance matching: the reference NeRF's colour map to its training images (``map``, ``views``, ``pixels``)
     or why there is none (``skipped``); already composed into every ``colour_to_reference``."""
@@ -386,6 +388,8 @@ class RegistrationResult:
             record["sampling_choice"] = self.sampling_choice
         if self.direct is not None:
             record["direct"] = self.direct
+        if self.colocated is not None:
+            record["colocated"] = self.colocated
         if self.reference_colour is not None:
             record["reference_colour"] = self.reference_colour
         return {**record, **self.extra}
@@ -396,7 +400,7 @@ class RegistrationResult:
         kept in ``extra``. Raises :class:`RegistrationError` when a key is missing or malformed."""
         known = {"format_version", "kind", "created", "reference", "conventions", "nerfs", "pairs", "sfm",
                  "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice",
-                 "known_geometry", "graph", "reference_colour", "direct"}  # fmt: skip
+                 "known_geometry", "graph", "reference_colour", "direct", "colocated"}  # fmt: skip
         try:
             if record.get("kind") != KIND:
                 raise ValueError(f"kind {record.get('kind')!r} is not {KIND!r}")
@@ -409,6 +413,7 @@ class RegistrationResult:
                 refinement=record["refinement"], settings=record["settings"], timings_s=record["timings_s"],
                 compute_timings_s=record["compute_timings_s"], sampling_choice=record.get("sampling_choice"),
                 reference_colour=record.get("reference_colour"), direct=record.get("direct"),
+                colocated=record.get("colocated"),
                 format_version=record["format_version"], extra={k: v for k, v in record.items() if k not in known},
             )  # fmt: skip
         except (KeyError, TypeError, ValueError, AttributeError) as e:

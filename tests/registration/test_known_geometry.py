@@ -282,8 +282,12 @@ def test_object_centric_pair_recovers_the_exact_transform(work):
     kgs = record["known_geometry"]
     assert kgs["pairs"][0]["hypotheses"][kgs["pairs"][0]["chosen"]]["inliers"] >= 100
     assert record["pairs"][0]["self_check"]["passed"]
+    # the re-render refinement ran by default (after the joint solve), and kept the exact link exact
+    refined = record["colocated"]["pairs"][0]
+    assert refined["kept"] and refined["rounds"][0]["inliers"] >= 100
     # the record reads back as a registration of this format, and the mode's renders carry depth
     assert reg.RegistrationResult.from_record(record).known_geometry == kgs
+    assert reg.RegistrationResult.from_record(record).colocated == record["colocated"]
     assert all((work / "renders" / n["render_folder"].rsplit("/", 1)[-1] / "depth.npz").is_file()
                for n in record["nerfs"])  # fmt: skip
 
