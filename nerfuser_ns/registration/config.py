@@ -248,7 +248,8 @@ class ColocatedConfig:
     """Render-and-fit rounds at most (each round renders at the link the previous one found). One: on the development
     drive (drive-10, stock nerfacto on COLMAP-posed captures, one of them bent 3.7 deg by COLMAP) the first round took
     the refused known-geometry link from 5.6 to 1.7 deg off the runs' content frames (5.9 to 0.9 off the stored
-    truth); a second round moved it 2.4 deg, away from both truths (so did a second round of a 3D-3D fit alone)."""
+    truth); a second round (of a first version that chose its views again each round) moved it 2.4 deg, away from
+    both truths."""
     stride: int = 4
     """Flow correspondences are read every this many pixels."""
     max_flow_error_px: float = 1.0
