@@ -11,7 +11,9 @@ import pytest
 from registration_helpers import gt_of, small_config
 from rich.console import Console
 
+from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
+from nerfuser_ns.bench.ground_truth import score_registration
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration import colocated
 from nerfuser_ns.registration.config import ColocatedConfig
@@ -106,3 +108,13 @@ def test_refine_colocated_keeps_every_other_transform(oc_renderers, oc_depth_pai
     np.testing.assert_array_equal(T[0], np.eye(4))
     assert sim3.sim3_errors(T[1], T_true).r_err_deg < 0.3
     assert summary["pairs"][0]["kept"] and len(summary["pairs"][0]["rounds"]) >= 1
+
+
+def test_sfm_mode_refines_at_co_located_views_only_when_asked(oc_layout, oc_renderers, oc_record, work):
+    assert "colocated" not in oc_record  # the SfM mode's default: off
+    config = small_config(colocated=ColocatedConfig(sfm=True, views=2))
+    record = score_registration(reg.register(oc_renderers, config, work, QUIET), gt_of(oc_layout))
+    section = record["colocated"]["pairs"]
+    assert len(section) == 1 and section[0]["kept"] and section[0]["rounds"][0]["inliers"] >= 100
+    assert "colocated" in record["compute_timings_s"]
+    assert record["nerfs"][1]["ground_truth"]["r_err_deg"] < 0.3
