@@ -39,7 +39,7 @@ from rich.console import Console
 from nerfuser_ns import bundle, sim3
 from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.registration.config import ColocatedConfig
-from nerfuser_ns.registration.known_geometry import bilinear, pixel_index, pixel_rays, reliable_depth
+from nerfuser_ns.registration.known_geometry import bilinear, pixel_index, pixel_rays, ransac_sim3, reliable_depth
 from nerfuser_ns.registration.render_cache import ViewSet, to_uint8
 from nerfuser_ns.registration.self_check import nearest_views, tree_edges
 from nerfuser_ns.renderers import Renderer
@@ -159,19 +159,12 @@ def fit_link(
     camera distance in a), refitted on its inliers; None when fewer than ``cfg.min_inliers`` support it."""
     if len(Xa) < max(3, cfg.min_inliers):
         return None
-    options = pycolmap.RANSACOptions()
-    options.max_error = cfg.ransac_max_error * float(np.median(distance_a))
-    options.min_inlier_ratio = 0.01
-    options.random_seed = cfg.seed
-    found = pycolmap.estimate_sim3d_robust(np.ascontiguousarray(Xb), np.ascontiguousarray(Xa), options)
-    if found is None:
+    found = ransac_sim3(Xb, Xa, cfg.ransac_max_error * float(np.median(distance_a)), cfg.seed)
+    if found is None or found[1].sum() < cfg.min_inliers:
         return None
-    mask = np.asarray(found["inlier_mask"], dtype=bool)
-    if mask.sum() < cfg.min_inliers:
-        return None
+    T, mask = found
     refit = pycolmap.estimate_sim3d(np.ascontiguousarray(Xb[mask]), np.ascontiguousarray(Xa[mask]))
-    best = refit if refit is not None else found["tgt_from_src"]
-    return sim3.to_homogeneous(np.asarray(best.matrix(), dtype=np.float64)), mask
+    return (T if refit is None else sim3.to_homogeneous(np.asarray(refit.matrix(), dtype=np.float64))), mask
 
 
 def bundle_link(
@@ -182,31 +175,24 @@ def bundle_link(
     correspondences: per view pair two cameras (one per NeRF, each in its own frame), per correspondence one point
     seen by both, with both renders' ray distances at relative noise ``depth_sigma``. ``matches``: (whether ``a`` is
     the source, the view pair's matches, the correspondences kept)."""
-    cams, cam_nerf, points, obs_cam, obs_xy, obs_dist = [], [], [], [], [], []
-    n = 0
+    cams, cam_nerf, points, obs_cam, obs_point, obs_xy, obs_dist = [], [], [], [], [], [], []
+    n = 0  # points so far
     for a_is_source, m, keep in matches:
-        side = (0, 1) if a_is_source else (1, 0)
+        c, m_keep = len(cams), int(keep.sum())
         cams += [m.source_c2w, m.other_c2w]
-        cam_nerf += list(side)
+        cam_nerf += [0, 1] if a_is_source else [1, 0]
         # each point starts where the source NeRF's depth puts it, in a's frame
         points.append(m.source[keep] if a_is_source else sim3.transform_points(T_ba, m.source[keep]))
-        c = len(cams) - 2
-        obs_cam += [np.full(int(keep.sum()), c), np.full(int(keep.sum()), c + 1)]
-        obs_xy += [m.xy_source[keep], m.xy_other[keep]]
-        obs_dist += [m.distance_source[keep], m.distance_other[keep]]
-        n += 1
-    P = np.concatenate(points)
-    idx = np.arange(len(P))
-    offsets = np.cumsum([0] + [int(k.sum()) for _, _, k in matches])
-    obs_point = np.concatenate([np.concatenate([idx[o:e], idx[o:e]]) for o, e in zip(offsets[:-1], offsets[1:],
-                                                                                         strict=True)])  # fmt: skip
-    obs_cam_a = np.concatenate([np.concatenate(obs_cam[2 * i : 2 * i + 2]) for i in range(n)])
-    obs_xy_a = np.concatenate([np.concatenate(obs_xy[2 * i : 2 * i + 2]) for i in range(n)])
-    obs_dist_a = np.concatenate([np.concatenate(obs_dist[2 * i : 2 * i + 2]) for i in range(n)])
+        obs_cam.append(np.repeat([c, c + 1], m_keep))
+        obs_point.append(np.tile(np.arange(n, n + m_keep), 2))
+        obs_xy.append(np.concatenate([m.xy_source[keep], m.xy_other[keep]]))
+        obs_dist.append(np.concatenate([m.distance_source[keep], m.distance_other[keep]]))
+        n += m_keep
     k = intrinsics
     return bundle.refine_sim3_bundle(np.stack([np.eye(4), T_ba]), np.stack(cams), np.asarray(cam_nerf),
-                                     (k.fx, k.fy, k.cx, k.cy), P, obs_cam_a, obs_point, obs_xy_a, ref=0,
-                                     loss_scale_px=loss_scale_px, obs_distance=obs_dist_a,
+                                     (k.fx, k.fy, k.cx, k.cy), np.concatenate(points), np.concatenate(obs_cam),
+                                     np.concatenate(obs_point), np.concatenate(obs_xy), ref=0,
+                                     loss_scale_px=loss_scale_px, obs_distance=np.concatenate(obs_dist),
                                      distance_sigma=depth_sigma)  # fmt: skip
 
 
