@@ -29,18 +29,22 @@ SUGGESTION = (
     "(--sampling.source training|both)"
 )
 """What to try when the hemisphere poses do not register (:func:`suggestion` per pose source)."""
+KNOWN_GEOMETRY_ADVICE = " or register on known geometry (--mode known-geometry)"
 SUGGESTIONS = {
     "hemisphere": SUGGESTION,
     "training": "render more training poses (--sampling.max-training-poses), add hemisphere poses (--sampling.source "
-    "both) or register on known geometry (--mode known-geometry)",
-    "both": "render more poses (--sampling.max-training-poses, --sampling.num-poses) or register on known geometry "
-    "(--mode known-geometry)",
+    "both)" + KNOWN_GEOMETRY_ADVICE,
+    "both": "render more poses (--sampling.max-training-poses, --sampling.num-poses)" + KNOWN_GEOMETRY_ADVICE,
 }
 
 
-def suggestion(source: str) -> str:
-    """What to try when renders from pose source ``source`` did not register (the hemisphere's advice by default)."""
-    return SUGGESTIONS.get(source, SUGGESTION)
+def suggestion(source: str, mode: str = "sfm") -> str:
+    """What to try when renders from pose source ``source`` did not register in registration mode ``mode`` (the
+    hemisphere's advice by default); known geometry is not offered to a mode that is not the SfM's."""
+    advice = SUGGESTIONS.get(source, SUGGESTION)
+    if mode != "sfm":
+        advice = advice.replace(KNOWN_GEOMETRY_ADVICE, "").replace(", add hemisphere", " or add hemisphere")
+    return advice
 
 
 DEFAULT_RENDER_SIZE = (400, 300, 60.0)

@@ -457,5 +457,5 @@ def failure_message(checks: Sequence[CrossRenderCheck], names: Sequence[str], co
             escape = ("calibrate --ncc-threshold for blurry renders" if what.startswith("cross-render self-check")
                       else "--depth-threshold 0 to skip the depth check")  # fmt: skip
             return (f"{names[c.i]} and {names[c.j]}: {what}; {LIKELY_CAUSE[config.mode]}; "
-                    f"{suggestion(config.sampling.source)} (or {escape})")  # fmt: skip
+                    f"{suggestion(config.sampling.source, config.mode)} (or {escape})")  # fmt: skip
     return None

@@ -237,12 +237,15 @@ def test_the_camera_check_applies_the_failure_rule_in_reference_units(rotation, 
 def test_a_failed_self_check_names_the_likely_cause_of_its_mode(mode):
     from nerfuser_ns.registration.self_check import CrossRenderCheck, failure_message
 
-    config = reg.RegistrationConfig(mode=mode)
+    config = reg.RegistrationConfig(mode=mode, sampling=reg.PoseSamplingConfig(source="training"))
     good, bad = CrossRenderCheck(0, 1, 0.9, 0.8, 4), CrossRenderCheck(1, 2, 0.1, 0.2, 4)
     assert failure_message([good], ["a", "b", "c"], config) is None
     message = failure_message([good, bad], ["a", "b", "c"], config)
     assert message.startswith("b and c: cross-render self-check failed (NCC 0.10 < ")  # the worse direction
     assert ("SfM" in message) == (mode == "sfm") and ("pose graph" in message) == (mode == "graph")
+    # known geometry is offered only to the mode that is not already it
+    assert ("--mode known-geometry" in message) == (mode == "sfm")
+    assert "--sampling.max-training-poses" in message
 
 
 @pytest.mark.parametrize("source", ["hemisphere", "training", "both"])
