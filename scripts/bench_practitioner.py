@@ -73,7 +73,7 @@ from nerfuser_ns.bench.practitioner_cases import (
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
 from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.registration import RegistrationConfig, read_registration
+from nerfuser_ns.registration import RegistrationConfig, RegistrationFailed, read_registration
 from nerfuser_ns.registration.record import iter_registered_nerfs
 from nerfuser_ns.renderers import NerfstudioRenderer
 from nerfuser_ns.spec import write_fusion_spec
@@ -396,13 +396,18 @@ def stage_content(layout, case_dir: Path, gt: list[dict]) -> None:
         truth = SceneFrameRenderer(layout.scene, g["nerf_to_world"], "ground truth", nerf.training_poses())
         start = time.perf_counter()
         # the registration's work folder: the run's renders at its training poses are reused from there
-        record = registration.register([nerf, truth], RegistrationConfig(), case_dir / "registration_work",
-                                       CONSOLE).to_record()  # fmt: skip
+        try:
+            record, refused = registration.register([nerf, truth], RegistrationConfig(), case_dir / "registration_work",
+                                                    CONSOLE).to_record(), None  # fmt: skip
+        except RegistrationFailed as failed:  # a blurry run can fail the NCC check beside the exact scene itself
+            record, refused = failed.result.to_record(), str(failed)
+            CONSOLE.print(f"{case_dir.name} {cap.name}: the run-to-scene registration was refused ({refused}); its "
+                          "solution is kept as the content truth, marked refused")  # fmt: skip
         T = np.asarray(record["nerfs"][1]["T_to_reference"])  # the truth's frame -> the content's (NeRF) frame
         e = sim3.sim3_errors(T, np.eye(4))
         results[cap.name] = {"truth_to_content": T.tolist(), "r_deg": float(e.r_err_deg), "t": float(e.t_err),
                              "s": float(e.s_err), "source": record.get("sampling_choice", {}).get("source"),
-                             "seconds": round(time.perf_counter() - start, 1)}  # fmt: skip
+                             "seconds": round(time.perf_counter() - start, 1), "refused": refused}  # fmt: skip
         CONSOLE.print(f"{case_dir.name} {cap.name}: content vs stored truth r {e.r_err_deg:.4f} deg, t {e.t_err:.5f}, "
                       f"s {e.s_err:.5f}")
     write_text_atomic(output, json.dumps(results, indent=2) + "\n")
@@ -563,7 +568,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     content = case_dir / "content_truth.json"
     if content.is_file():
         found = json.loads(content.read_text())
-        record["content_truth"] = {k: {m: v[m] for m in ("r_deg", "t", "s", "source", "seconds")}
+        record["content_truth"] = {k: {m: v.get(m) for m in ("r_deg", "t", "s", "source", "seconds", "refused")}
                                    for k, v in found.items()}  # fmt: skip
         content_to_world = content_ground_truth(case_dir, gt)
         if content_to_world is not None:
@@ -770,12 +775,15 @@ def _content_section(records: list[dict]) -> list[str]:
     lines = ["", "### Where the trained content lies against the stored truth (`--stages content`)", "",
              "Each run registered (every default) to the ground-truth scene placed in its NeRF frame by the stored "
              "truth: the SIM(3) found would be the identity if that truth held for the trained content. It carries "
-             "the registration's own error on a NeRF beside an exact renderer.", "",
-             "| case | run | r (deg) | t | s | pose source | seconds |", "| --- | --- | --- | --- | --- | --- | --- |"]
+             "the registration's own error on a NeRF beside an exact renderer. *refused*: its self-check refused "
+             "that run-to-scene registration (the run renders too differently from the exact scene for the NCC "
+             "threshold); its solution is used all the same.", "",
+             "| case | run | r (deg) | t | s | pose source | seconds | self-check |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         for name, c in r["content_truth"].items():
             lines.append(f"| {r['case']} | {name} | {c['r_deg']:.4f} | {c['t']:.5f} | {c['s']:.5f} | {c['source']} | "
-                         f"{c['seconds']:.0f} |")
+                         f"{c['seconds']:.0f} | {'refused' if c.get('refused') else 'passed'} |")
     lines.append("")
     for r in rows:
         for e in r["registration"].get("errors_content") or []:
