@@ -44,7 +44,7 @@ from nerfuser_ns.registration import PoseSamplingConfig, RegistrationConfig, Reg
 from nerfuser_ns.renderers import NerfstudioRenderer
 
 MODES = ("sfm", "known-geometry")
-STEPS_AFTER_RENDER = ("features", "matching", "mapping", "hypotheses", "solve", "self_check")
+STEPS_AFTER_RENDER = ("features", "matching", "mapping", "hypotheses", "solve", "colocated", "direct", "self_check")
 
 
 @dataclass
