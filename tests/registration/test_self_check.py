@@ -243,7 +243,7 @@ def test_a_failed_self_check_names_the_likely_cause_of_its_mode(mode):
     message = failure_message([good, bad], ["a", "b", "c"], config)
     assert message.startswith("b and c: cross-render self-check failed (NCC 0.10 < ")  # the worse direction
     assert ("SfM" in message) == (mode == "sfm") and ("pose graph" in message) == (mode == "graph")
-    # known geometry is offered only to the mode that is not already it
+    # known geometry is offered to the SfM mode only (the other modes already register on it)
     assert ("--mode known-geometry" in message) == (mode == "sfm")
     assert "--sampling.max-training-poses" in message
 
