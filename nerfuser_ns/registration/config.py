@@ -29,22 +29,21 @@ SUGGESTION = (
     "(--sampling.source training|both)"
 )
 """What to try when the hemisphere poses do not register (:func:`suggestion` per pose source)."""
-KNOWN_GEOMETRY_ADVICE = " or register on known geometry (--mode known-geometry)"
-SUGGESTIONS = {
-    "hemisphere": SUGGESTION,
-    "training": "render more training poses (--sampling.max-training-poses), add hemisphere poses (--sampling.source "
-    "both)" + KNOWN_GEOMETRY_ADVICE,
-    "both": "render more poses (--sampling.max-training-poses, --sampling.num-poses)" + KNOWN_GEOMETRY_ADVICE,
-}
+ADVICE = {
+    "training": ("render more training poses (--sampling.max-training-poses)",
+                 "add hemisphere poses (--sampling.source both)"),
+    "both": ("render more poses (--sampling.max-training-poses, --sampling.num-poses)",),
+}  # fmt: skip
+"""Per pose source other than the hemisphere, what to try when its renders did not register (:func:`suggestion`)."""
 
 
 def suggestion(source: str, mode: str = "sfm") -> str:
     """What to try when renders from pose source ``source`` did not register in registration mode ``mode`` (the
-    hemisphere's advice by default); known geometry is not offered to a mode that is not the SfM's."""
-    advice = SUGGESTIONS.get(source, SUGGESTION)
-    if mode != "sfm":
-        advice = advice.replace(KNOWN_GEOMETRY_ADVICE, "").replace(", add hemisphere", " or add hemisphere")
-    return advice
+    hemisphere's advice by default); known geometry is offered to the SfM mode only."""
+    if source not in ADVICE:
+        return SUGGESTION
+    options = [*ADVICE[source], *(["register on known geometry (--mode known-geometry)"] if mode == "sfm" else [])]
+    return options[0] if len(options) == 1 else f"{', '.join(options[:-1])} or {options[-1]}"
 
 
 DEFAULT_RENDER_SIZE = (400, 300, 60.0)
