@@ -158,6 +158,11 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
     return out
 
 
+def _choice_list(choices: Sequence[SamplingChoice]) -> str:
+    """``training (sfm), both (sfm), ...``: each choice's pose source and mode."""
+    return ", ".join(f"{c.config.sampling.source} ({c.config.mode})" for c in choices)
+
+
 def register(
     renderers: Sequence[Renderer],
     config: RegistrationConfig | None,
@@ -178,6 +183,9 @@ def register(
     choices = resolve_sampling(renderers, config)
     for choice in choices:
         validate_settings(choice.config)
+    if len(choices) > 1:  # a refusal then is not the end: say so before the first one can be read that way
+        console.print(f"automatic pose sampling: tries {_choice_list(choices)} in turn and keeps the first that "
+                      "registers")  # fmt: skip
     tried = []
     for n, choice in enumerate(choices):
         sc = choice.config.sampling
@@ -202,6 +210,7 @@ def register(
             tried.append(attempt)
             console.print(f"[yellow]{sc.source} poses did not register ({choice.config.mode}, {seconds:.0f} s): "
                           f"{reason}[/]")  # fmt: skip
+            console.print(f"trying next ({n + 2} of {len(choices)}): {_choice_list(choices[n + 1 : n + 2])}")
             continue
         result.sampling_choice = record_choice
         if config.reference_colour and config.colour_views > 0:

@@ -240,7 +240,9 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     assert before.pop("seconds") >= 0  # the failed attempt's own time: its renders stay in the work folder
     assert before == {"source": "training", "mode": "sfm", "error": "a: its views form a separate SfM model"}
     text = console.export_text()
-    for line in ("pose sampling: training", "training poses did not register (sfm, 0 s)", "pose sampling: both",
+    for line in ("automatic pose sampling: tries training (sfm), both (sfm), hemisphere (sfm), both (known-geometry) "
+                 "in turn", "pose sampling: training", "training poses did not register (sfm, 0 s)",
+                 "trying next (2 of 4): both (sfm)", "pose sampling: both",
                  "appearance: the colour maps stay relative to the reference NeRF"):
         assert line in text, line
     assert "no training images" in record.reference_colour["skipped"]  # ground-truth renderers have none
@@ -258,7 +260,9 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     record = reg.register(oc_renderers, reg.RegistrationConfig(), work, console=console)
     assert tried == [("training", "sfm"), ("both", "sfm"), ("hemisphere", "sfm"), ("both", "known-geometry")]
     assert (record.sampling_choice["source"], record.sampling_choice["mode"]) == ("both", "known-geometry")
-    assert "pose sampling: both, mode known-geometry (SfM registered with no pose source" in console.export_text()
+    text = console.export_text()
+    assert "pose sampling: both, mode known-geometry (SfM registered with no pose source" in text
+    assert "trying next (4 of 4): both (known-geometry)" in text
     # every choice failing: the last error is the one raised
     monkeypatch.setattr(reg_pipeline, "register_once", lambda *a: (_ for _ in ()).throw(reg.RegistrationError("no")))
     with pytest.raises(reg.RegistrationError, match="no"):
