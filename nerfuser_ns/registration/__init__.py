@@ -29,6 +29,7 @@ from nerfuser_ns.registration.config import (
     RegistrationError,
     RegistrationFailed,
     SfMConfig,
+    TwinLinked,
     validate_settings,
 )
 from nerfuser_ns.registration.estimate import NerfEstimate, estimate_transform, estimate_transforms
@@ -71,6 +72,7 @@ __all__ = [
     "RegistrationConfig",
     "RegistrationError",
     "RegistrationFailed",
+    "TwinLinked",
     "RegistrationFileError",
     "RegistrationResult",
     "SamplingChoice",

@@ -266,7 +266,7 @@ def match_pair(
     return Matches3D(a, b, np.concatenate(ia).astype(int), np.concatenate(ib).astype(int), len(view_pairs))
 
 
-def _distinct(T: np.ndarray, others: Sequence[Hypothesis], centre: np.ndarray, tol: float) -> bool:
+def is_distinct(T: np.ndarray, others: Sequence[Hypothesis], centre: np.ndarray, tol: float) -> bool:
     """Whether ``T`` differs from every earlier hypothesis by more than 5 degrees or ``tol`` at the matches' centre."""
     for h in others:
         r = float(sim3.rotation_angle_deg(sim3.decompose_sim3(T)[0] @ sim3.decompose_sim3(h.T)[0].T))
@@ -325,7 +325,7 @@ def sim3_hypotheses(
             T = sim3.to_homogeneous(np.asarray(refit.matrix(), dtype=np.float64))
         if found and len(inliers) < cfg.min_hypothesis_fraction * len(found[0].inliers):
             break
-        if _distinct(T, found, centre, 10 * max_error):
+        if is_distinct(T, found, centre, 10 * max_error):
             found.append(Hypothesis(T, inliers))
         remaining = remaining[~mask]
     return found

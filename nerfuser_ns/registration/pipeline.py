@@ -36,6 +36,7 @@ from nerfuser_ns.registration.config import (
     RegistrationConfig,
     RegistrationError,
     RegistrationFailed,
+    TwinLinked,
     json_float,
     validate_settings,
 )
@@ -77,6 +78,7 @@ from nerfuser_ns.registration.self_check import (
     spanning_pairs,
 )
 from nerfuser_ns.registration.sfm import check_registered_views, run_sfm
+from nerfuser_ns.registration.twin_check import twin_check
 from nerfuser_ns.renderers import NerfstudioRenderer, Renderer, gives_depth
 from nerfuser_ns.runs import default_device, run_names
 
@@ -158,6 +160,14 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
     return out
 
 
+def twin_fallback(choice: SamplingChoice) -> SamplingChoice:
+    """The choice after the twin check refused an SfM link: known geometry on the same pose source (its renders, with
+    depth, are already made)."""
+    return SamplingChoice(replace(choice.config, mode="known-geometry"),
+                          f"the twin check refused the SfM's link: known geometry (ours) on the same renders; "
+                          f"{choice.reason.split('; ', 1)[-1]}")  # fmt: skip
+
+
 def _choice_list(choices: Sequence[SamplingChoice]) -> str:
     """``training (sfm), both (sfm), ...``: each choice's pose source and mode."""
     return ", ".join(f"{c.config.sampling.source} ({c.config.mode})" for c in choices)
@@ -180,14 +190,17 @@ def register(
     config = config or RegistrationConfig()
     if len(renderers) < 2:
         raise RegistrationError(f"registration needs at least 2 NeRFs, got {len(renderers)}")
-    choices = resolve_sampling(renderers, config)
+    choices = resolve_sampling(renderers, config)  # a list: a twin refusal changes what comes next
     for choice in choices:
         validate_settings(choice.config)
     if len(choices) > 1:  # a refusal then is not the end: say so before the first one can be read that way
         console.print(f"automatic pose sampling: tries {_choice_list(choices)} in turn and keeps the first that "
                       "registers")  # fmt: skip
     tried = []
-    for n, choice in enumerate(choices):
+    n = -1
+    while n + 1 < len(choices):
+        n += 1
+        choice = choices[n]
         sc = choice.config.sampling
         mode = "" if choice.config.mode == config.mode else f", mode [bold]{choice.config.mode}[/]"
         console.print(f"pose sampling: [bold]{sc.source}[/]{mode} ({choice.reason}), renders {sc.width}x{sc.height} "
@@ -210,6 +223,10 @@ def register(
             tried.append(attempt)
             console.print(f"[yellow]{sc.source} poses did not register ({choice.config.mode}, {seconds:.0f} s): "
                           f"{reason}[/]")  # fmt: skip
+            if isinstance(e, TwinLinked):
+                # every SfM over these NeRFs sees the same repeated structure: known geometry, on these renders first
+                choices[n + 1 :] = [twin_fallback(choice), *(c for c in choices[n + 1 :] if c.config.mode != "sfm"
+                                                             and c.config.sampling.source != sc.source)]  # fmt: skip
             console.print(f"trying next ({n + 2} of {len(choices)}): {_choice_list(choices[n + 1 : n + 2])}")
             continue
         result.sampling_choice = record_choice
@@ -290,7 +307,14 @@ def register_once(
     # changes stay far inside their 5-degree rule; the cameras are checked again against the final transform).
     early = camera_failure_of(views, estimates, T_to_C, T_to_ref, [r.name for r in renderers], config)
     models = model_failure(views, sfm, T_to_ref, config) if config.model_check and early is None else None
-    refused = early or models
+    twin = None
+    if config.twin_check and depth and early is None and models is None:  # 5a'. a wrong copy of repeated structure?
+        t0 = time.perf_counter()
+        twin = twin_check(renderers, views, T_to_ref, tree, intr, config, console)
+        timings["twin_check"] = time.perf_counter() - t0
+        if twin.warning is not None:
+            console.print(f"[yellow]{twin.warning}[/]")
+    refused = early or models or (twin.refusal if twin is not None else None)
     colocated = None
     if config.colocated.enabled and config.colocated.sfm and refused is None and depth:  # 4c. re-render refinement
         t0 = time.perf_counter()
@@ -318,9 +342,10 @@ def register_once(
     )
     result.direct = direct
     result.colocated = colocated
-    failure = check_failure(result, checks, config, models)
+    result.twin_check = None if twin is None else twin.summary
+    failure = check_failure(result, checks, config, models or (twin.refusal if twin is not None else None))
     if failure is not None:
-        raise RegistrationFailed(failure, result)
+        raise (TwinLinked if twin is not None and failure == twin.refusal else RegistrationFailed)(failure, result)
     return result
 
 

@@ -354,6 +354,9 @@ class RegistrationResult:
     settings."""
     colocated: dict | None = None
     """Re-render refinement (``--colocated.enabled``): per NeRF pair its rounds (:class:`.colocated.PairRefinement`)."""
+    twin_check: dict | None = None
+    """Mode sfm's twin check (``--twin-check``): per checked pair its 3D matches, hypotheses, and the SfM link's and
+    the best rival's worst-view NCC (:mod:`.twin_check`), or why it was skipped."""
     reference_colour: dict | None = None
     """Appearance matching: the reference NeRF's colour map to its training images (``map``, ``views``, ``pixels``)
     or why there is none (``skipped``); already composed into every ``colour_to_reference``."""
@@ -390,6 +393,8 @@ class RegistrationResult:
             record["direct"] = self.direct
         if self.colocated is not None:
             record["colocated"] = self.colocated
+        if self.twin_check is not None:
+            record["twin_check"] = self.twin_check
         if self.reference_colour is not None:
             record["reference_colour"] = self.reference_colour
         return {**record, **self.extra}
@@ -400,7 +405,7 @@ class RegistrationResult:
         kept in ``extra``. Raises :class:`RegistrationError` when a key is missing or malformed."""
         known = {"format_version", "kind", "created", "reference", "conventions", "nerfs", "pairs", "sfm",
                  "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice",
-                 "known_geometry", "graph", "reference_colour", "direct", "colocated"}  # fmt: skip
+                 "known_geometry", "graph", "reference_colour", "direct", "colocated", "twin_check"}  # fmt: skip
         try:
             if record.get("kind") != KIND:
                 raise ValueError(f"kind {record.get('kind')!r} is not {KIND!r}")
@@ -413,7 +418,7 @@ class RegistrationResult:
                 refinement=record["refinement"], settings=record["settings"], timings_s=record["timings_s"],
                 compute_timings_s=record["compute_timings_s"], sampling_choice=record.get("sampling_choice"),
                 reference_colour=record.get("reference_colour"), direct=record.get("direct"),
-                colocated=record.get("colocated"),
+                colocated=record.get("colocated"), twin_check=record.get("twin_check"),
                 format_version=record["format_version"], extra={k: v for k, v in record.items() if k not in known},
             )  # fmt: skip
         except (KeyError, TypeError, ValueError, AttributeError) as e:

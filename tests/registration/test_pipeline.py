@@ -293,6 +293,43 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     assert all("refused_transforms" not in t for t in record.sampling_choice["tried_before"])
 
 
+def test_a_twin_refusal_goes_to_known_geometry_on_the_same_renders(oc_renderers, work, monkeypatch):
+    tried = []
+
+    def twin_then_kg(renderers, config, work_dir, console):
+        tried.append((config.sampling.source, config.mode))
+        if config.mode == "sfm":
+            rejected = SimpleNamespace(sampling_choice=None, nerfs=[SimpleNamespace(T_to_reference=np.eye(4))] * 2)
+            raise reg.TwinLinked("twin check: a / b: another transform renders better", rejected)
+        return SimpleNamespace(sampling_choice=None, reference=0, nerfs=[], reference_colour=None)
+
+    monkeypatch.setattr(reg_pipeline, "register_once", twin_then_kg)
+    console = Console(record=True, width=200)
+    record = reg.register(oc_renderers, reg.RegistrationConfig(), work, console=console)
+    # no further SfM over the same repeated structure: known geometry on the training renders, right away
+    assert tried == [("training", "sfm"), ("training", "known-geometry")]
+    assert record.sampling_choice["reason"].startswith("the twin check refused the SfM's link")
+    assert "trying next (2 of 3): training (known-geometry)" in console.export_text()
+    # known geometry failing there too: then on the most views, as the automatic choice's last step
+    tried.clear()
+
+    def twin_then_fail(renderers, config, work_dir, console):
+        twin_then_kg(renderers, config, work_dir, console)
+        if config.sampling.source == "training":
+            raise reg.RegistrationError("a and b: ambiguous")
+        return SimpleNamespace(sampling_choice=None, reference=0, nerfs=[], reference_colour=None)
+
+    monkeypatch.setattr(reg_pipeline, "register_once", twin_then_fail)
+    reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
+    assert tried == [("training", "sfm"), ("training", "known-geometry"), ("both", "known-geometry")]
+    # an explicit pose source tries that source in that mode only: the refusal is the error
+    tried.clear()
+    config = reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(source="training"))
+    with pytest.raises(reg.TwinLinked, match="twin check"):
+        reg.register(oc_renderers, config, work, console=Console(quiet=True))
+    assert tried == [("training", "sfm")]
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # Bad inputs: one red line naming the NeRF, exit 1, no file
 
