@@ -96,6 +96,12 @@ def self_symmetries(feats: LiftedFeatures, views: ViewSet, config: RegistrationC
     return [h.T for h in hyps if abs(np.log(sim3.decompose_sim3(h.T)[2])) <= MAX_SYMMETRY_SCALE_LOG]
 
 
+def explained(T: np.ndarray, points_b: np.ndarray, points_a: np.ndarray, max_error: float) -> Hypothesis:
+    """``T`` as a hypothesis of the pair, with the 3D matches it maps within ``max_error``."""
+    residual = np.linalg.norm(sim3.transform_points(T, points_b) - points_a, axis=-1)
+    return Hypothesis(T, np.flatnonzero(residual <= max_error))
+
+
 def twin_check(
     renderers: Sequence[Renderer], views: Sequence[ViewSet], T_to_ref: np.ndarray, pairs: Sequence[tuple[int, int]],
     intr: Intrinsics, config: RegistrationConfig, console: Console,
@@ -120,13 +126,10 @@ def twin_check(
         max_error = ransac_max_error(feats, m, config)
         points_a, points_b = feats[a].points[m.ia], feats[b].points[m.ib]
         T_sfm = relative_link(T_to_ref, a, b)
-        explained = np.linalg.norm(sim3.transform_points(T_sfm, points_b) - points_a, axis=-1) <= max_error
-        sfm_link = Hypothesis(T_sfm, np.flatnonzero(explained))
+        sfm_link = explained(T_sfm, points_b, points_a, max_error)
         hyps = sim3_hypotheses(points_b, points_a, max_error, kg, config.sfm.seed) if len(m.ia) else []
         twins = [S @ T_sfm for S in symmetries[a]] + [T_sfm @ S for S in symmetries[b]]
-        for T in twins:
-            hyps.append(Hypothesis(T, np.flatnonzero(np.linalg.norm(sim3.transform_points(T, points_b) - points_a,
-                                                                    axis=-1) <= max_error)))  # fmt: skip
+        hyps += [explained(T, points_b, points_a, max_error) for T in twins]
         centre = np.median(points_b, axis=0) if len(points_b) else np.zeros(3)
         rivals: list[Hypothesis] = []
         for h in hyps:
