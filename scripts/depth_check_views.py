@@ -25,7 +25,7 @@ import tyro
 from rich.console import Console
 
 from nerfuser_ns import sim3
-from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, run_config
+from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, case_registration, run_config
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
 from nerfuser_ns.registration.render_cache import ViewSet, load_render_intrinsics
@@ -70,12 +70,7 @@ def direction(src: ViewSet, dst, T: np.ndarray, order: list[int], intr, cfg: Reg
 
 
 def measure(spec: str, console: Console) -> tuple[list[Row], dict]:
-    case, _, rest = spec.partition("=")
-    folder, _, registration_file = rest.partition(",")
-    if not case or not folder:
-        raise SystemExit(f"case {spec!r}: expected LAYOUT:SEED=FOLDER[,REGISTRATION]")
-    case_dir = Path(folder)
-    registration_path = case_dir / (registration_file or "registration.json")
+    case, case_dir, registration_path = case_registration(spec)
     reg = read_registration(registration_path)
     layout = case_layout(case)
     captures = [c.name for c in layout.captures]

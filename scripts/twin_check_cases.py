@@ -26,7 +26,7 @@ import tyro
 from rich.console import Console
 
 from nerfuser_ns import sim3
-from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, run_config
+from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, case_registration, run_config
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
 from nerfuser_ns.registration.render_cache import ViewSet, load_render_intrinsics
@@ -46,12 +46,7 @@ class TwinCheckCases:
 
 
 def measure(spec: str, console: Console) -> dict:
-    case, _, rest = spec.partition("=")
-    folder, _, registration_file = rest.partition(",")
-    if not case or not folder:
-        raise SystemExit(f"case {spec!r}: expected LAYOUT:SEED=FOLDER[,REGISTRATION]")
-    case_dir = Path(folder)
-    path = case_dir / (registration_file or "registration.json")
+    case, case_dir, path = case_registration(spec)
     reg = read_registration(path)
     layout = case_layout(case)
     names = [c.name for c in layout.captures]

@@ -42,6 +42,17 @@ def case_layout(
     return make_layout(name, **params)
 
 
+def case_registration(spec: str) -> tuple[str, Path, Path]:
+    """``LAYOUT:SEED=FOLDER[,REGISTRATION]`` -> (the case, its folder, its registration file; default
+    ``registration.json``), for the diagnostics that read a case's registration; a malformed spec exits with one
+    line."""
+    case, _, rest = spec.partition("=")
+    folder, _, registration_file = rest.partition(",")
+    if not case or not folder:
+        raise SystemExit(f"case {spec!r}: expected LAYOUT:SEED=FOLDER[,REGISTRATION]")
+    return case, Path(folder), Path(folder) / (registration_file or "registration.json")
+
+
 def run_config(case_dir: Path, capture: str) -> Path:
     """A capture's stock nerfacto run (the ``train`` stage)."""
     return case_dir / "runs" / capture / "nerfacto" / "bench" / "config.yml"
