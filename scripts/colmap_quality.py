@@ -3,8 +3,9 @@
 ``scripts/bench_practitioner.py --stages scene colmap`` renders a case's captures and poses each with
 ``ns-process-data``; this reads what COLMAP wrote (``transforms.json``) against the generated scene's true poses, as the
 benchmark's ground truth does (:func:`nerfuser_ns.bench.practitioner_cases.capture_ground_truth`): views posed, median
-rotation and centre error of the single SIM(3) tie to the world, and the bend (rotation between the ties of the first
-and the second half of a capture). No trained run is needed::
+rotation and centre error of the single SIM(3) tie to the world, the bend (rotation between the ties of the first
+and the second half of a capture) and the misposed views (more than 5 deg off the tie fitted to the rotations). No
+trained run is needed::
 
     python scripts/colmap_quality.py --cases drive:6=outputs/practitioner/drive-6@320x240 \\
         drive:6=outputs/practitioner-640/drive-6@640x480 --output reports/colmap_quality_drive6.md
@@ -58,7 +59,7 @@ def measure(case: str, folder: Path, width: int, height: int) -> list[dict]:
         rows.append({"case": case, "folder": str(folder), "size": f"{width}x{height}", "capture": g["capture"],
                      "posed": g["posed_by_colmap"], "views": g["views"],
                      "rot_err_deg": g["colmap_rot_err_deg_median"], "centre_err": g["colmap_centre_err_median"],
-                     "bend_deg": g["colmap_bend_deg"]})  # fmt: skip
+                     "bend_deg": g["colmap_bend_deg"], "misposed": g["pose_tie_misposed_views"]})  # fmt: skip
     return rows
 
 
@@ -68,12 +69,14 @@ def write_report(rows: list[dict], output: Path, command: str) -> None:
              "(deg) and centre error (world units) of the one SIM(3) tying its frame to the true poses; the bend (deg) "
              "between the ties of the first and the second half of its views (0 where one tie fits the whole "
              "reconstruction). These bound what any registration of NeRFs trained on the captures can reach against "
-             "the benchmark's truth.", "",
-             "| case | image size | capture | posed | rot err (deg) | centre err | bend (deg) |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+             "the benchmark's truth. *Misposed*: views more than 5 deg off their true rotation after the tie fitted to "
+             "the views' rotations (a part of the capture posed by the wrong copy of repeated structure).", "",
+             "| case | image size | capture | posed | rot err (deg) | centre err | bend (deg) | misposed |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for r in rows:
         lines.append(f"| {r['case']} | {r['size']} | {r['capture']} | {r['posed']}/{r['views']} | "
-                     f"{r['rot_err_deg']:.3f} | {r['centre_err']:.4f} | {r['bend_deg']:.2f} |")  # fmt: skip
+                     f"{r['rot_err_deg']:.3f} | {r['centre_err']:.4f} | {r['bend_deg']:.2f} | "
+                     f"{r['misposed']} |")  # fmt: skip
     write_text_atomic(output, "\n".join(lines) + "\n")
     write_text_atomic(output.with_suffix(".json"), json.dumps(rows, indent=2) + "\n")
 

@@ -285,6 +285,7 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
         "colmap_centre_err_median": centre_err,
         "colmap_bend_deg": colmap_bend_deg(stored, true, idx, world_scale),
         "pose_tie_rot_err_deg_median": pose_rot_err,
+        "pose_tie_misposed_views": misposed_views(stored, true),
     }
     return record, data_to_world, pose_to_world, world_scale
 
@@ -317,6 +318,18 @@ def colmap_bend_deg(stored: np.ndarray, true: np.ndarray, idx: np.ndarray, world
     halves = [order[: len(order) // 2], order[len(order) // 2 :]]
     first, second = (tie_to_world(stored[h], true[h], world_scale)[0] for h in halves)
     return float(sim3.sim3_errors(first, second).r_err_deg)
+
+
+MISPOSED_DEG = 5.0
+"""A view COLMAP posed more than this off the capture's pose tie is misposed (the paper's rotation failure rule)."""
+
+
+def misposed_views(poses: np.ndarray, true: np.ndarray, max_deg: float = MISPOSED_DEG) -> int:
+    """How many of a capture's views ``poses`` (its stored frame) lie more than ``max_deg`` off their true rotation
+    after the tie fitted to the views' rotations: on repeated structure COLMAP can pose part of a capture by the wrong
+    copy (a room's views of one half taken for the other), which the median residuals hide."""
+    est = sim3.estimate_sim3_from_poses(poses, true)
+    return int(np.sum(np.asarray(est.rot_residuals_deg) > max_deg))
 
 
 def tie_to_world(

@@ -45,11 +45,27 @@ def test_exact_and_bent_reconstructions(quality, tmp_path):
     assert (exact["posed"], exact["views"]) == (50, exact_cap.num_views) and exact["size"] == "64x48"
     assert exact["rot_err_deg"] < 1e-6 and exact["centre_err"] < 1e-6 and exact["bend_deg"] < 1e-6
     assert bent["bend_deg"] == pytest.approx(4.0, abs=0.3) and bent["rot_err_deg"] > 0.5
+    assert exact["misposed"] == 0 and bent["misposed"] == 0  # a 4 deg bend splits the error, no view is 5 deg off
     out = tmp_path / "report" / "quality.md"
     out.parent.mkdir()
     quality.write_report(rows, out, "python scripts/colmap_quality.py ...")
     assert "| street:3 | 64x48 | capture_0 | 50/" in out.read_text()
     assert json.loads(out.with_suffix(".json").read_text()) == rows
+
+
+def test_views_posed_by_the_wrong_copy_are_counted(quality, tmp_path):
+    """A room capture whose views 0-19 COLMAP posed by the half-turn twin of the room (turned about its vertical axis):
+    the median residuals stay at zero, the misposed count finds exactly those views."""
+    layout = case_layout("room:3", width=64, height=48)
+    cap = layout.captures[0]
+    poses = cap.c2w_world.copy()
+    half_turn = sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 0.0, 180.0])))
+    poses[:20] = sim3.transform_poses(half_turn, poses[:20])
+    _write_dataset(tmp_path, cap.name, poses, np.arange(len(poses)))
+    _write_dataset(tmp_path, layout.captures[1].name, layout.captures[1].c2w_world, np.arange(64))
+    folded, clean = quality.measure("room:3", tmp_path, 64, 48)
+    assert folded["misposed"] == 20 and clean["misposed"] == 0
+    assert folded["rot_err_deg"] < 90  # what the centres' tie shows of it
 
 
 def test_bad_cases_say_what_is_expected(quality, tmp_path):
