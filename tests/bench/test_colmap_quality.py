@@ -55,7 +55,7 @@ def test_exact_and_bent_reconstructions(quality, tmp_path):
 
 def test_views_posed_by_the_wrong_copy_are_counted(quality, tmp_path):
     """A room capture whose views 0-19 COLMAP posed by the half-turn twin of the room (turned about its vertical axis):
-    the median residuals stay at zero, the misposed count finds exactly those views."""
+    the misposed count finds exactly those views, the other capture none."""
     layout = case_layout("room:3", width=64, height=48)
     cap = layout.captures[0]
     poses = cap.c2w_world.copy()
