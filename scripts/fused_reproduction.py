@@ -25,7 +25,13 @@ import tyro
 from PIL import Image
 
 from nerfuser_ns import runs, sim3
-from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, case_registration, run_config
+from nerfuser_ns.bench.practitioner_cases import (
+    capture_ground_truth,
+    case_layout,
+    case_registration,
+    reference_links,
+    run_config,
+)
 from nerfuser_ns.blending import BlendMethod
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.model import fuse_models
@@ -66,10 +72,8 @@ def main(cfg: FusedReproduction) -> None:
     names = [c.name for c in layout.captures]
     rend = [NerfstudioRenderer(run_config(case_dir, c), name=n["name"]) for c, n in zip(names, reg["nerfs"],
                                                                                         strict=True)]  # fmt: skip
-    ref = reg["reference"]["index"]
-    gt = capture_ground_truth(layout, case_dir, optimized=False)
-    links = {"registered": np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]]),
-             "pose truth": sim3.to_reference_frame(np.stack([g["nerf_to_world_pose"] for g in gt]), ref)}  # fmt: skip
+    all_links = reference_links(reg, capture_ground_truth(layout, case_dir, optimized=False))
+    links = {key: all_links[key] for key in ("registered", "pose truth")}
     models = [r._load().model for r in rend]
     chosen = []
     for r in rend:

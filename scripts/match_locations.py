@@ -23,7 +23,7 @@ import numpy as np
 import tyro
 
 from nerfuser_ns import sim3
-from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, case_registration
+from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, case_registration, reference_links
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
 from nerfuser_ns.registration.known_geometry import extract_sift, lift_keypoints, pixel_index, reliable_depth
@@ -81,10 +81,10 @@ def main(cfg: MatchLocations) -> None:
     feats = [lift_keypoints(vs, intr, kg, config.sfm.num_threads, False) for vs in views]
     m = match_nerfs(feats, views, view_similarity(feats, views, config), 0, 1, config)
     max_error = ransac_max_error(feats, m, config)
-    to_world = [g["nerf_to_world_pose"] for g in capture_ground_truth(case_layout(case), case_dir, optimized=False)]
-    ref = reg["reference"]["index"]
-    links = {"registered": np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]]),
-             "pose truth": sim3.to_reference_frame(np.stack(to_world), ref)}  # fmt: skip
+    gt = capture_ground_truth(case_layout(case), case_dir, optimized=False)
+    to_world = [g["nerf_to_world_pose"] for g in gt]
+    all_links = reference_links(reg, gt)
+    links = {key: all_links[key] for key in ("registered", "pose truth")}
     lo, hi = np.asarray(cfg.box_min), np.asarray(cfg.box_max)
 
     def in_box(points: np.ndarray) -> np.ndarray:

@@ -26,7 +26,13 @@ import tyro
 from rich.console import Console
 
 from nerfuser_ns import sim3
-from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, case_registration, run_config
+from nerfuser_ns.bench.practitioner_cases import (
+    capture_ground_truth,
+    case_layout,
+    case_registration,
+    reference_links,
+    run_config,
+)
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
 from nerfuser_ns.registration.render_cache import ViewSet, load_render_intrinsics
@@ -56,11 +62,9 @@ def measure(spec: str, console: Console) -> dict:
     if not all(v.has_depth for v in views):
         raise SystemExit(f"{path}: its renders carry no depth; the twin check needs it")
     intr = load_render_intrinsics(views[0].folder)
-    T = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]])
-    ref = reg["reference"]["index"]
-    gt = capture_ground_truth(layout, case_dir, optimized=False)
-    truths = {key: sim3.to_reference_frame(np.stack([g[key] for g in gt]), ref)
-              for key in ("nerf_to_world", "nerf_to_world_pose")}  # fmt: skip
+    links = reference_links(reg, capture_ground_truth(layout, case_dir, optimized=False))
+    T, ref = links["registered"], reg["reference"]["index"]
+    truths = {"nerf_to_world": links["stored truth"], "nerf_to_world_pose": links["pose truth"]}
     overlap = np.zeros((len(T), len(T)), dtype=int)
     for p in reg["pairs"]:
         overlap[p["i"], p["j"]] = overlap[p["j"], p["i"]] = p.get("covisible_points") or 1

@@ -265,6 +265,16 @@ def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list
     return out
 
 
+def reference_links(reg: dict, gt: list[dict]) -> dict[str, np.ndarray]:
+    """A registration's transforms into its reference NeRF's frame (``registered``, ``[k, 4, 4]``) beside the case's
+    truths in that frame: ``stored truth`` (each capture tied by its camera centres) and ``pose truth`` (by its views'
+    poses); ``reg`` a registration record, ``gt`` :func:`capture_ground_truth` of the case, captures in its order."""
+    ref = reg["reference"]["index"]
+    return {"registered": np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]]),
+            "stored truth": sim3.to_reference_frame(np.stack([g["nerf_to_world"] for g in gt]), ref),
+            "pose truth": sim3.to_reference_frame(np.stack([g["nerf_to_world_pose"] for g in gt]), ref)}  # fmt: skip
+
+
 def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float]:
     """What COLMAP made of one capture (``ns-process-data``'s transforms.json; no trained run needed): the record of
     :func:`capture_ground_truth` without its NeRF frames, the SIM(3) tying the stored frame to the world by the

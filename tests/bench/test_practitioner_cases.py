@@ -19,6 +19,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     colmap_bend_deg,
     fused_appearance_matching,
     fused_config,
+    reference_links,
     registration_with_transforms,
     rejected_registration,
     share_captures,
@@ -107,6 +108,21 @@ def test_the_pose_tie_fixes_the_roll_of_a_near_collinear_capture():
     assert sim3.sim3_errors(centres[0], want).r_err_deg > 0.3  # the roll about the line follows the noise
     assert sim3.sim3_errors(poses[0], want).r_err_deg < 1e-6  # exact rotations fix it
     assert centres[1] > 0.3 and poses[1] < 1e-6  # and the residuals say which tie held
+
+
+def test_reference_links_put_the_truths_in_the_registrations_reference_frame():
+    rng = np.random.default_rng(5)
+    to_world = sim3.random_sim3(rng, size=(3,))  # each NeRF frame -> the world
+    gt = [{"nerf_to_world": T, "nerf_to_world_pose": T} for T in to_world]
+    registered = sim3.to_reference_frame(to_world, 1)
+    reg = {"reference": {"index": 1}, "nerfs": [{"T_to_reference": T.tolist()} for T in registered]}
+    links = reference_links(reg, gt)
+    assert set(links) == {"registered", "stored truth", "pose truth"}
+    assert np.allclose(links["registered"], registered) and np.allclose(links["pose truth"], registered)
+    assert np.allclose(links["stored truth"][1], np.eye(4))  # the reference NeRF maps to itself
+    p = rng.normal(size=3)  # a point of NeRF 0 lands where the world puts it, seen from the reference
+    want = sim3.transform_points(sim3.invert_sim3(to_world[1]), sim3.transform_points(to_world[0], p))
+    assert np.allclose(sim3.transform_points(links["stored truth"][0], p), want)
 
 
 def _captured(case, captures, times=None):
