@@ -68,10 +68,12 @@ from nerfuser_ns.bench.practitioner_cases import (
     share_captures,
     summarise,
     test_transforms,
+    training_transforms,
     truth_evals,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, RegistrationFailed, read_registration
 from nerfuser_ns.registration.record import iter_registered_nerfs
@@ -152,6 +154,15 @@ class BenchPractitioner:
     """default: nerfacto's camera optimiser as ``ns-train`` sets it (on); off: trained with
     ``--pipeline.model.camera-optimizer.mode off``, so each NeRF's frame is exactly its stored COLMAP frame (a
     diagnostic of the truth, not a user default). Case folders get the suffix ``-camopt-off``."""
+    matching_method: Literal["exhaustive", "sequential"] = "exhaustive"
+    """COLMAP's feature matching in ``ns-process-data``: exhaustive (every pair of views; the benchmark's setting
+    throughout, since nerfstudio's default ``vocab_tree`` downloads its tree) or sequential (neighbours in file order,
+    what the registration's fold warning advises for a filmed sequence). Case folders get the suffix ``-sequential``;
+    such a folder shares the images and test views of the exhaustive one (never its COLMAP datasets)."""
+    check_captures: bool = False
+    """Before training, run ``ns-nerfuser-check-capture --write-larger-side`` on each capture's COLMAP dataset, as a
+    user following its advice: a capture it finds folded trains on its larger side. Case folders get the suffix
+    ``-checked``."""
     share_captures: bool = True
     """Before the ``scene`` stage of a case folder with no images yet, copy the images, COLMAP datasets and test views
     of the same case trained the other way (the other ``--camera-optimizer`` folder), when that folder has them all:
@@ -183,13 +194,26 @@ def case_folder(case: str, cfg: BenchPractitioner) -> str:
     name = case.replace(":", "-")
     if cfg.appearance_jitter > 0:
         name += f"-{'bracket' if cfg.appearance_bracket else 'jitter'}{cfg.appearance_jitter:g}"
+    name += "-sequential" if cfg.matching_method == "sequential" else ""
+    name += "-checked" if cfg.check_captures else ""
     return name + ("-camopt-off" if cfg.camera_optimizer == "off" else "")
 
 
 def training_siblings(case: str, cfg: BenchPractitioner) -> list[str]:
-    """The folders of the same case (same images) trained otherwise: every other camera-optimiser setting."""
-    others = [v for v in ("default", "off") if v != cfg.camera_optimizer]
-    return [case_folder(case, replace(cfg, camera_optimizer=v)) for v in others]
+    """The folders of the same case (same images and COLMAP datasets) trained otherwise: every other camera-optimiser
+    setting, checked or not (``--check-captures``)."""
+    own = case_folder(case, cfg)
+    names = [case_folder(case, replace(cfg, camera_optimizer=v, check_captures=c))
+             for v in ("default", "off") for c in (False, True)]  # fmt: skip
+    return [n for n in names if n != own]
+
+
+def image_siblings(case: str, cfg: BenchPractitioner) -> list[str]:
+    """The other folders of the same case (same images) posed otherwise (COLMAP matching) or checked otherwise."""
+    own = case_folder(case, cfg)
+    names = [case_folder(case, replace(cfg, matching_method=m, camera_optimizer=v, check_captures=c))
+             for m in ("exhaustive", "sequential") for v in ("default", "off") for c in (False, True)]  # fmt: skip
+    return [n for n in names if n != own and n not in training_siblings(case, cfg)]
 
 
 def case_options(cfg: BenchPractitioner) -> list[str]:
@@ -205,6 +229,10 @@ def case_options(cfg: BenchPractitioner) -> list[str]:
         opts += ["--max-num-iterations", str(cfg.max_num_iterations)]
     if cfg.camera_optimizer != "default":
         opts += ["--camera-optimizer", cfg.camera_optimizer]
+    if cfg.matching_method != "exhaustive":
+        opts += ["--matching-method", cfg.matching_method]
+    if cfg.check_captures:
+        opts += ["--check-captures"]
     return opts
 
 
@@ -240,17 +268,46 @@ def stage_scene(layout, case_dir: Path) -> None:
         write_capture(layout, view, test_transforms(case_dir).parent, world_frame=True, supersample=2)
 
 
-def stage_colmap(layout, case_dir: Path) -> None:
+def stage_colmap(layout, case_dir: Path, matching_method: str = "exhaustive") -> None:
+    """Pose each capture with ``ns-process-data images`` (COLMAP, CPU SIFT); ``colmap_matching.txt`` names the
+    matching (cases without it were posed by exhaustive matching)."""
+    if not (case_dir / "colmap_matching.txt").is_file():
+        write_text_atomic(case_dir / "colmap_matching.txt", matching_method + "\n")
     for cap in layout.captures:
         out = dataset_transforms(case_dir, cap.name)
         if out.is_file():
             continue
         cmd = [str(BIN / "ns-process-data"), "images", "--data", str(images_done(case_dir, cap.name).parent),
-               "--output-dir", str(out.parent), "--no-gpu", "--matching-method", "exhaustive", "--num-downscales", "0"]
+               "--output-dir", str(out.parent), "--no-gpu", "--matching-method", matching_method,
+               "--num-downscales", "0"]  # fmt: skip
         seconds = _run(cmd, case_dir / f"colmap_{cap.name}.log")
         if not out.is_file():
             raise RuntimeError(f"ns-process-data wrote no transforms.json for {cap.name}: COLMAP posed nothing")
         _add_time(case_dir, f"colmap {cap.name}", seconds)
+
+
+def _training_data(case_dir: Path, capture: str) -> Path:
+    """``ns-train``'s ``--data``: the dataset folder, or the larger side's transforms file of a folded capture."""
+    file = training_transforms(case_dir, capture)
+    return file if file.name == LARGER_SIDE_NAME else file.parent
+
+
+def stage_check(layout, case_dir: Path) -> None:
+    """``ns-nerfuser-check-capture --write-larger-side`` on every capture's dataset (exit 1 means a capture is folded:
+    expected, not an error); what it found goes to ``capture_check.json``."""
+    out = case_dir / "capture_check.json"
+    if out.is_file():
+        return
+    datasets = [str(dataset_transforms(case_dir, cap.name).parent) for cap in layout.captures]
+    cmd = [str(BIN / "ns-nerfuser-check-capture"), *datasets, "--write-larger-side"]
+    CONSOLE.print(f"[dim]$ {' '.join(cmd)}[/]")
+    log = case_dir / "check_capture.log"
+    with open(log, "w") as f:
+        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
+    if proc.returncode not in (0, 1) or "error:" in log.read_text():
+        raise RuntimeError(f"ns-nerfuser-check-capture failed (exit {proc.returncode}), see {log}")
+    checks = {cap.name: check_dataset(d).to_record() for cap, d in zip(layout.captures, datasets, strict=True)}
+    write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
 
 
 def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
@@ -258,7 +315,7 @@ def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
         config = run_config(case_dir, cap.name)
         if config.is_file() and list((config.parent / "nerfstudio_models").glob("step-*.ckpt")):
             continue
-        cmd = [str(BIN / "ns-train"), "nerfacto", "--data", str(dataset_transforms(case_dir, cap.name).parent),
+        cmd = [str(BIN / "ns-train"), "nerfacto", "--data", str(_training_data(case_dir, cap.name)),
                "--output-dir", str(case_dir / "runs"), "--experiment-name", cap.name, "--timestamp", "bench",
                "--max-num-iterations", str(cfg.max_num_iterations), "--steps-per-save", str(cfg.max_num_iterations),
                *(TRAIN_OPTIONS if cfg.train_preset == "cpu" else STOCK_OPTIONS)]  # fmt: skip
@@ -610,6 +667,10 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     commit = case_dir / "register_commit.txt"
     record["registered_at_commit"] = commit.read_text().strip() if commit.is_file() else None
     record["captures_from"] = captures_from(case_dir)
+    matching = case_dir / "colmap_matching.txt"
+    record["colmap_matching"] = matching.read_text().strip() if matching.is_file() else "exhaustive"
+    check = case_dir / "capture_check.json"
+    record["capture_check"] = json.loads(check.read_text()) if check.is_file() else None
     return record
 
 
@@ -628,6 +689,16 @@ def _blend_header(*lead: str) -> list[str]:
 def _psnr_cells(b: dict) -> str:
     """One blend table's PSNR cells, in :data:`BLEND_COLUMNS` order ("-" for a method not scored)."""
     return " | ".join("-" if b[k] is None else f"{b[k]:.2f}" for k, _ in BLEND_COLUMNS)
+
+
+def _posed_cell(c: dict) -> str:
+    """``posed/views``, with the misposed views (more than 5 deg off the pose tie) and the views the run trained on
+    where they are recorded and differ from the posed ones."""
+    cell = f"{c['posed_by_colmap']}/{c['views']}"
+    extra = [f"{c['pose_tie_misposed_views']} misposed"] if c.get("pose_tie_misposed_views") else []
+    if c.get("trained_views", c["posed_by_colmap"]) != c["posed_by_colmap"]:
+        extra.append(f"trained on {c['trained_views']}")
+    return cell + (f" ({'; '.join(extra)})" if extra else "")
 
 
 def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> None:
@@ -660,12 +731,14 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
              "NeRF's frame by the ground truth; the blend uses the estimated registration.", ""]  # fmt: skip
     if cfg.note:
         lines += [cfg.note, ""]
-    shared = [(r["case"], r["captures_from"]) for r in records if r.get("captures_from")]
+    shared = [(r["case"], r["captures_from"], r.get("colmap_matching", "exhaustive")) for r in records
+              if r.get("captures_from")]  # fmt: skip
     if shared:
-        lines += ["Shared inputs: " + "; ".join(f"{c} uses the images, COLMAP datasets and test views of `{src}` "
-                                                 "(the same case trained otherwise, copied before its first stage)"
-                                                 for c, src in shared)
-                  + ", so each such pair differs in training alone.", ""]  # fmt: skip
+        lines += ["Shared inputs: " + "; ".join(
+            f"{c} uses the images, COLMAP datasets and test views of `{src}` (the same case trained otherwise, copied "
+            "before its first stage), so the pair differs in training alone" if m == "exhaustive" else
+            f"{c} uses the images and test views of `{src}` (copied before its first stage) and its own COLMAP "
+            f"datasets ({m} matching), so the pair differs from COLMAP on" for c, src, m in shared) + ".", ""]
     lines += ["## Registration (every default of `ns-nerfuser-register`)", "",
               "| case | NeRF | r_err (deg) | t_err | s_err | ok | COLMAP rot err (deg, median per capture) | "
               "COLMAP centre err (median, / capture radius) | COLMAP bend (deg) | posed / views |",
@@ -674,7 +747,7 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         colmap = r["captures"]
         col = ", ".join(f"{c['colmap_rot_err_deg_median']:.3f}" for c in colmap)
         cen = ", ".join(f"{c['colmap_centre_err_median']:.4f}" for c in colmap)
-        posed = ", ".join(f"{c['posed_by_colmap']}/{c['views']}" for c in colmap)
+        posed = ", ".join(_posed_cell(c) for c in colmap)
         bend = ", ".join(f"{c['colmap_bend_deg']:.2f}" for c in colmap)
         errs = r["registration"]["errors"]
         if errs is None:
@@ -980,9 +1053,18 @@ def main(cfg: BenchPractitioner) -> None:
                 if source is not None:
                     CONSOLE.print(f"{case}: images, COLMAP datasets and test views copied from {source} "
                                   "(the same case trained otherwise; --no-share-captures to make them anew)")
+                elif cfg.share_captures:
+                    source = share_captures(case_dir, [c.name for c in layout.captures],
+                                            [cfg.root.absolute() / f for f in image_siblings(case, cfg)],
+                                            parts=("images", "test"))  # fmt: skip
+                    if source is not None:
+                        CONSOLE.print(f"{case}: images and test views copied from {source} (the same case posed by "
+                                      "another COLMAP matching; --no-share-captures to render them anew)")
                 stage_scene(layout, case_dir)
             if "colmap" in cfg.stages:
-                stage_colmap(layout, case_dir)
+                stage_colmap(layout, case_dir, cfg.matching_method)
+            if cfg.check_captures and "train" in cfg.stages:
+                stage_check(layout, case_dir)
             if "train" in cfg.stages:
                 stage_train(layout, case_dir, cfg)
             if "register" in cfg.stages:

@@ -16,6 +16,7 @@ import numpy as np
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration.record import write_registration
 
@@ -146,6 +147,13 @@ def dataset_transforms(case_dir: Path, capture: str) -> Path:
     return case_dir / "datasets" / capture / "transforms.json"
 
 
+def training_transforms(case_dir: Path, capture: str) -> Path:
+    """The transforms file a capture's run trains on: the larger side of a folded capture where
+    ``ns-nerfuser-check-capture --write-larger-side`` wrote one, else the COLMAP dataset's."""
+    larger = dataset_transforms(case_dir, capture).with_name(LARGER_SIDE_NAME)
+    return larger if larger.is_file() else dataset_transforms(case_dir, capture)
+
+
 def test_transforms(case_dir: Path) -> Path:
     """The world-posed test views (the ``scene`` stage's last output)."""
     return case_dir / "test" / "transforms.json"
@@ -159,9 +167,11 @@ def captures_ready(case_dir: Path, captures: list[str]) -> bool:
     )
 
 
-def share_captures(case_dir: Path, captures: list[str], siblings: list[Path]) -> Path | None:
-    """Copy the images, COLMAP datasets and test views of the first sibling that has them all into ``case_dir``, when
-    ``case_dir`` has none yet; the sibling copied from, or None.
+def share_captures(
+    case_dir: Path, captures: list[str], siblings: list[Path], parts: tuple[str, ...] = ("images", "datasets", "test")
+) -> Path | None:
+    """Copy the images, COLMAP datasets and test views (``parts``) of the first sibling that has them all into
+    ``case_dir``, when ``case_dir`` has none yet; the sibling copied from, or None.
 
     Siblings are folders of the same case that differ only in training (e.g. the camera optimiser): sharing their
     inputs makes a pair that differs in training alone, since CPU COLMAP does not pose a capture the same way twice.
@@ -173,14 +183,16 @@ def share_captures(case_dir: Path, captures: list[str], siblings: list[Path]) ->
     if source is None:
         return None
     case_dir.mkdir(parents=True, exist_ok=True)
-    for name in ("images", "datasets", "test"):
+    for name in parts:
         tmp = case_dir / f".{name}.partial"
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.copytree(source / name, tmp, symlinks=True)
         tmp.rename(case_dir / name)
-    for log in source.glob("colmap_*.log"):
-        shutil.copy2(log, case_dir / log.name)
-    shared = {k: v for k, v in case_times(source).items() if k.startswith(("images ", "colmap "))}
+    stages = ("images ", "colmap ") if "datasets" in parts else ("images ",)
+    if "datasets" in parts:
+        for log in source.glob("colmap_*.log"):
+            shutil.copy2(log, case_dir / log.name)
+    shared = {k: v for k, v in case_times(source).items() if k.startswith(stages)}
     write_text_atomic(case_dir / "times.json", json.dumps({**shared, **case_times(case_dir)}, indent=2) + "\n")
     write_text_atomic(case_dir / "captures_from.txt", source.name + "\n")
     return source
@@ -284,18 +296,26 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
     idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
     stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
     true = cap.c2w_world[idx]
+    misposed, posed = misposed_views(stored, true), len(idx)  # what COLMAP made of the whole capture
+    trained = training_transforms(case_dir, cap.name)
+    if trained != dataset_transforms(case_dir, cap.name):  # the ties are those of the views the run trained on
+        meta = json.loads(trained.read_text())
+        idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
+        stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
+        true = cap.c2w_world[idx]
     world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
     data_to_world, rot_err, centre_err = tie_to_world(stored, true, world_scale)
     pose_to_world, pose_rot_err, _ = tie_to_world(stored, true, world_scale, rotations=True)
     record = {
         "capture": cap.name,
         "views": cap.num_views,
-        "posed_by_colmap": len(idx),
+        "posed_by_colmap": posed,
+        "trained_views": len(idx),
         "colmap_rot_err_deg_median": rot_err,
         "colmap_centre_err_median": centre_err,
         "colmap_bend_deg": colmap_bend_deg(stored, true, idx, world_scale),
         "pose_tie_rot_err_deg_median": pose_rot_err,
-        "pose_tie_misposed_views": misposed_views(stored, true),
+        "pose_tie_misposed_views": misposed,
     }
     return record, data_to_world, pose_to_world, world_scale
 

@@ -27,6 +27,7 @@ import numpy as np
 from rich.console import Console
 
 from nerfuser_ns import sim3
+from nerfuser_ns.capture_check import fold_check
 from nerfuser_ns.registration.assemble import build_known_geometry_result, build_result
 from nerfuser_ns.registration.colocated import refine_colocated
 from nerfuser_ns.registration.config import (
@@ -160,6 +161,31 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
     return out
 
 
+def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) -> dict | None:
+    """The fold check (:mod:`nerfuser_ns.capture_check`) of each run's training cameras in file order, per NeRF name
+    (None when no renderer knows its training images); a folded capture is warned about: its run was trained on
+    folded poses, which no registration mends."""
+    out = {}
+    for r in renderers:
+        files = getattr(r, "training_image_files", None)
+        if files is None:
+            continue
+        try:
+            poses, names = r.training_poses(), [str(f) for f in files()]
+        except (RegistrationError, ValueError, OSError):  # no dataset: resolve_sampling says so
+            continue
+        if poses is None or len(poses) != len(names):
+            continue
+        check = fold_check(poses, names)
+        out[r.name] = check.to_record()
+        warning = check.warning(f"NeRF {r.name}")
+        if warning is not None:
+            console.print(f"[yellow]warning: {warning}. The run was trained on those poses and no registration mends "
+                          "that: check its dataset with ns-nerfuser-check-capture, pose it again or train on its "
+                          "larger side (docs/your_own_captures.md)[/]")  # fmt: skip
+    return out or None
+
+
 def twin_fallback(choice: SamplingChoice) -> SamplingChoice:
     """The choice after the twin check refused an SfM link: known geometry on the same pose source (its renders, with
     depth, are already made)."""
@@ -191,6 +217,7 @@ def register(
     if len(renderers) < 2:
         raise RegistrationError(f"registration needs at least 2 NeRFs, got {len(renderers)}")
     choices = resolve_sampling(renderers, config)  # a list: a twin refusal changes what comes next
+    capture_checks = check_captures(renderers, console)
     for choice in choices:
         validate_settings(choice.config)
     if len(choices) > 1:  # a refusal then is not the end: say so before the first one can be read that way
@@ -230,6 +257,7 @@ def register(
             console.print(f"trying next ({n + 2} of {len(choices)}): {_choice_list(choices[n + 1 : n + 2])}")
             continue
         result.sampling_choice = record_choice
+        result.capture_checks = capture_checks
         if config.reference_colour and config.colour_views > 0:
             match_reference_colours(result, renderers[result.reference], config.colour_views, console)
         return result

@@ -360,6 +360,9 @@ class RegistrationResult:
     reference_colour: dict | None = None
     """Appearance matching: the reference NeRF's colour map to its training images (``map``, ``views``, ``pixels``)
     or why there is none (``skipped``); already composed into every ``colour_to_reference``."""
+    capture_checks: dict | None = None
+    """Per NeRF name, the fold check of its training cameras (:class:`nerfuser_ns.capture_check.FoldCheck`'s
+    record): a capture COLMAP folded on repeated structure."""
     format_version: int = FORMAT_VERSION
     extra: dict[str, Any] = field(default_factory=dict)
     """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
@@ -397,6 +400,8 @@ class RegistrationResult:
             record["twin_check"] = self.twin_check
         if self.reference_colour is not None:
             record["reference_colour"] = self.reference_colour
+        if self.capture_checks is not None:
+            record["capture_checks"] = self.capture_checks
         return {**record, **self.extra}
 
     @classmethod
@@ -405,7 +410,8 @@ class RegistrationResult:
         kept in ``extra``. Raises :class:`RegistrationError` when a key is missing or malformed."""
         known = {"format_version", "kind", "created", "reference", "conventions", "nerfs", "pairs", "sfm",
                  "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice",
-                 "known_geometry", "graph", "reference_colour", "direct", "colocated", "twin_check"}  # fmt: skip
+                 "known_geometry", "graph", "reference_colour", "direct", "colocated", "twin_check",
+                 "capture_checks"}  # fmt: skip
         try:
             if record.get("kind") != KIND:
                 raise ValueError(f"kind {record.get('kind')!r} is not {KIND!r}")
@@ -419,7 +425,8 @@ class RegistrationResult:
                 compute_timings_s=record["compute_timings_s"], sampling_choice=record.get("sampling_choice"),
                 reference_colour=record.get("reference_colour"), direct=record.get("direct"),
                 colocated=record.get("colocated"), twin_check=record.get("twin_check"),
-                format_version=record["format_version"], extra={k: v for k, v in record.items() if k not in known},
+                capture_checks=record.get("capture_checks"), format_version=record["format_version"],
+                extra={k: v for k, v in record.items() if k not in known},
             )  # fmt: skip
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise RegistrationError(f"not a registration record of format {FORMAT_VERSION} "

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from nerfuser_ns import sim3
-from nerfuser_ns.bench.practitioner_cases import case_layout
+from nerfuser_ns.bench.practitioner_cases import case_layout, colmap_tie, training_transforms
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset, write_larger_side
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +67,25 @@ def test_views_posed_by_the_wrong_copy_are_counted(quality, tmp_path):
     folded, clean = quality.measure("room:3", tmp_path, 64, 48)
     assert folded["misposed"] == 20 and clean["misposed"] == 0
     assert folded["rot_err_deg"] < 90  # what the centres' tie shows of it
+
+
+def test_a_run_trained_on_the_larger_side_is_tied_by_the_views_it_trained_on(tmp_path):
+    """After ``ns-nerfuser-check-capture --write-larger-side``: COLMAP's record still counts the whole capture (20
+    misposed of 64 posed), the ties use the 44 views the run trained on (no misposed view left to bend them)."""
+    layout = case_layout("room:3", width=64, height=48)
+    cap = layout.captures[0]
+    poses = cap.c2w_world.copy()
+    centre = poses[:, :3, 3].mean(0)
+    R = sim3.so3_exp(np.radians([0.0, 0.0, 180.0]))
+    poses[20:40] = sim3.transform_poses(sim3.make_sim3(R, centre - R @ centre), poses[20:40])
+    _write_dataset(tmp_path, cap.name, poses, np.arange(64))
+    folded = colmap_tie(cap, tmp_path)[0]
+    data = tmp_path / "datasets" / cap.name
+    write_larger_side(data, check_dataset(data), data / LARGER_SIDE_NAME)
+    assert training_transforms(tmp_path, cap.name) == data / LARGER_SIDE_NAME
+    record = colmap_tie(cap, tmp_path)[0]
+    assert record["posed_by_colmap"] == 64 and record["pose_tie_misposed_views"] == 20 and record["trained_views"] == 44
+    assert record["colmap_centre_err_median"] < 1e-6 < folded["colmap_centre_err_median"]  # the centres' tie was bent
 
 
 def test_bad_cases_say_what_is_expected(quality, tmp_path):

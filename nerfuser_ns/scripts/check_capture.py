@@ -1,0 +1,92 @@
+"""``ns-nerfuser-check-capture``: has COLMAP folded a capture? Check ``ns-process-data``'s output before training.
+
+Example::
+
+    ns-process-data images --data images/east --output-dir data/east
+    ns-nerfuser-check-capture data/east data/west             # one line per capture; exit 1 if any is folded
+    ns-nerfuser-check-capture data/east --write-larger-side   # also writes data/east/transforms_larger_side.json
+    ns-train nerfacto --data data/east/transforms_larger_side.json
+
+On repeated structure COLMAP can pose a block of a capture's views by the wrong copy of the structure (see
+:mod:`nerfuser_ns.capture_check`); a run trained on such poses cannot be registered correctly by any method. The check
+needs views filmed in sequence (file names in the order taken) and says so when the order is no sequence.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+from rich.console import Console
+from rich.text import Text
+
+from nerfuser_ns.capture_check import (
+    FOLD_TURN_DEG,
+    LARGER_SIDE_NAME,
+    SEQUENCE_STEP_DEG,
+    check_dataset,
+    dataset_file,
+    write_larger_side,
+)
+
+CONSOLE = Console(soft_wrap=True)
+ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
+
+
+@dataclass
+class CheckCaptureCommand:
+    """Check COLMAP-posed captures (ns-process-data outputs) for folds by repeated structure."""
+
+    data: tyro.conf.Positional[list[Path]]
+    """Dataset folders (or their transforms.json), one per capture."""
+    write_larger_side: bool = False
+    """For each folded capture, write ``transforms_larger_side.json`` beside its transforms.json: every frame but the
+    suspect ones (the smaller side of the fold, a consistent capture by itself). The dataset's own file is never
+    changed."""
+
+    def main(self) -> int:
+        """The exit status: 0 when no capture is folded, 1 when one is (or an input is bad)."""
+        folded = False
+        checks = [(path, check_dataset(path)) for path in self.data]  # every input read before anything is written
+        for path, check in checks:
+            if not check.checked:
+                CONSOLE.print(f"{path}: not checked: the median turn between views in file order is "
+                              f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order is "
+                              "not a filmed sequence")  # fmt: skip
+                continue
+            warning = check.warning(str(path))
+            if warning is None:
+                CONSOLE.print(f"{path}: not folded ({check.num_views} views, median turn "
+                              f"{check.median_turn_deg:.1f} deg, no turn above {FOLD_TURN_DEG:.0f} deg)")  # fmt: skip
+                continue
+            folded = True
+            CONSOLE.print(f"[yellow]{warning}[/]")
+            CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
+            if self.write_larger_side:
+                out = write_larger_side(path, check, dataset_file(path).parent / LARGER_SIDE_NAME)
+                CONSOLE.print(f"  wrote {out} ({check.num_views - check.suspect_views} views): train with "
+                              f"ns-train nerfacto --data {out}")  # fmt: skip
+            else:
+                CONSOLE.print("  train on its larger side (--write-larger-side: a consistent capture by itself), or "
+                              "pose it again and check again")  # fmt: skip
+        return 1 if folded else 0
+
+
+def run(command: CheckCaptureCommand) -> int:
+    try:
+        return command.main()
+    except (ValueError, OSError) as e:
+        ERR_CONSOLE.print(Text.assemble(("error: ", "bold red"), (str(e).splitlines()[0], "red")), highlight=False)
+        return 1
+
+
+def entrypoint() -> None:
+    """Console script ``ns-nerfuser-check-capture``."""
+    tyro.extras.set_accent_color("bright_yellow")
+    sys.exit(run(tyro.cli(CheckCaptureCommand)))
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,140 @@
+"""The fold check of a capture's poses (nerfuser_ns.capture_check), its CLI ns-nerfuser-check-capture, and the
+registration's warning: a room capture filmed in sequence, with a block of views posed by the room's half-turn twin."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rich.console import Console
+from scipy.spatial.transform import Rotation
+
+from nerfuser_ns import sim3
+from nerfuser_ns.bench.practitioner_cases import case_layout
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset, fold_check, neighbour_turns, write_larger_side
+from nerfuser_ns.registration.pipeline import check_captures
+from nerfuser_ns.scripts import check_capture as cli
+
+FOLDED = range(20, 40)
+"""Views posed by the twin in the folded capture."""
+
+
+@pytest.fixture(scope="module")
+def room_poses() -> np.ndarray:
+    """A room capture's true poses, filmed in sequence (64 views)."""
+    return case_layout("room:3", width=64, height=48).captures[0].c2w_world.copy()
+
+
+def _fold(poses: np.ndarray) -> np.ndarray:
+    """The poses with :data:`FOLDED` moved by a half turn about the vertical through the capture's mean centre."""
+    centre = poses[:, :3, 3].mean(0)
+    R = sim3.so3_exp(np.radians([0.0, 0.0, 180.0]))
+    half_turn = sim3.make_sim3(R, centre - R @ centre)
+    out = poses.copy()
+    out[list(FOLDED)] = sim3.transform_poses(half_turn, poses[list(FOLDED)])
+    return out
+
+
+def _names(n: int) -> list[str]:
+    return [f"images/frame_{i + 1:05d}.png" for i in range(n)]
+
+
+def _write_dataset(folder: Path, poses: np.ndarray, names: list[str]) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    meta = {"camera_model": "OPENCV", "ply_file_path": "sparse_pc.ply",
+            "frames": [{"file_path": n, "transform_matrix": p.tolist()} for n, p in zip(names, poses, strict=True)]}
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return folder
+
+
+def test_neighbour_turns_are_the_rotation_angles(room_poses):
+    turns = neighbour_turns(room_poses)
+    R = room_poses[:, :3, :3]
+    ref = [np.degrees(Rotation.from_matrix(a.T @ b).magnitude()) for a, b in zip(R[:-1], R[1:], strict=True)]
+    np.testing.assert_allclose(turns, ref, atol=1e-6)
+
+
+def test_a_clean_sequence_is_checked_and_not_folded(room_poses):
+    check = fold_check(room_poses, _names(64))
+    assert check.checked and not check.folded and check.suspect == () and check.warning("x") is None
+    assert check.median_turn_deg < 30
+
+
+def test_the_folded_block_is_found_exactly_in_any_frame(room_poses):
+    """Jumps out of and back into the block; the suspect views are exactly the block, whatever SIM(3) the capture's
+    frame is in and whatever order the frames are stored in."""
+    folded = _fold(room_poses)
+    frame = sim3.make_sim3(sim3.so3_exp(np.array([0.3, -1.1, 0.7])), np.array([2.0, -1.0, 0.5]), 3.7)
+    moved = sim3.transform_poses(frame, folded)
+    names = _names(64)
+    order = np.random.default_rng(0).permutation(64)
+    check = fold_check(moved[order], [names[i] for i in order])
+    assert check.folded and len(check.jumps) == 2
+    assert set(check.suspect) == {names[i] for i in FOLDED}
+    assert check.jumps[0][:2] == (names[19], names[20]) and check.jumps[0][2] > 120
+    assert "20 of 64 views" in check.warning("capture_a")
+
+
+def test_a_capture_not_filmed_in_file_order_is_not_checked(room_poses):
+    """Poses shuffled against their names: the file order is no sequence, so nothing is claimed."""
+    shuffled = _fold(room_poses)[np.random.default_rng(1).permutation(64)]
+    check = fold_check(shuffled, _names(64))
+    assert not check.checked and not check.folded and check.median_turn_deg > 30
+
+
+def test_larger_side_is_written_beside_and_never_over_the_dataset(room_poses, tmp_path):
+    data = _write_dataset(tmp_path / "data", _fold(room_poses), _names(64))
+    original = (data / "transforms.json").read_text()
+    check = check_dataset(data)
+    with pytest.raises(ValueError, match="own transforms.json"):
+        write_larger_side(data, check, data / "transforms.json")
+    out = write_larger_side(data, check, data / LARGER_SIDE_NAME)
+    assert (data / "transforms.json").read_text() == original
+    meta = json.loads(out.read_text())
+    assert len(meta["frames"]) == 44 and "ply_file_path" not in meta
+    assert not check_dataset(out).folded  # the larger side alone is a consistent sequence
+    elsewhere = write_larger_side(data, check, tmp_path / "other" / "larger.json")
+    assert Path(json.loads(elsewhere.read_text())["frames"][0]["file_path"]) == (data / "images/frame_00001.png")
+
+
+def test_cli_reports_each_capture_and_exits_1_on_a_fold(room_poses, tmp_path, capsys):
+    folded = _write_dataset(tmp_path / "east", _fold(room_poses), _names(64))
+    clean = _write_dataset(tmp_path / "west", room_poses, _names(64))
+    assert cli.run(cli.CheckCaptureCommand([clean])) == 0
+    assert "not folded" in capsys.readouterr().out
+    assert cli.run(cli.CheckCaptureCommand([clean, folded], write_larger_side=True)) == 1
+    out = capsys.readouterr().out
+    assert "looks folded" in out and "20 of 64 views" in out and "ns-train nerfacto --data" in out
+    assert (folded / LARGER_SIDE_NAME).is_file() and not (clean / LARGER_SIDE_NAME).exists()
+
+
+def test_cli_bad_input_is_one_line_and_writes_nothing(room_poses, tmp_path, capsys):
+    folded = _write_dataset(tmp_path / "east", _fold(room_poses), _names(64))
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "transforms.json").write_text("{not json")
+    for bad, fragment in ((tmp_path / "missing", "no transforms.json"), (tmp_path / "broken", "not a nerfstudio")):
+        assert cli.run(cli.CheckCaptureCommand([folded, bad], write_larger_side=True)) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and fragment in err and str(bad) in err
+    assert not (folded / LARGER_SIDE_NAME).exists()  # every input is read before anything is written
+
+
+class _TrainedRun:
+    def __init__(self, name: str, poses: np.ndarray):
+        self.name, self._poses = name, poses
+
+    def training_poses(self) -> np.ndarray:
+        return self._poses
+
+    def training_image_files(self) -> list[Path]:
+        return [Path("/data") / n for n in _names(len(self._poses))]
+
+
+def test_registration_warns_about_a_run_trained_on_a_folded_capture(room_poses):
+    console = Console(record=True, width=400)
+    checks = check_captures([_TrainedRun("east", _fold(room_poses)), _TrainedRun("west", room_poses)], console)
+    text = console.export_text()
+    assert "NeRF east" in text and "looks folded" in text and "NeRF west" not in text
+    assert checks["east"]["folded"] and checks["east"]["suspect_views"] == 20 and not checks["west"]["folded"]
