@@ -255,7 +255,7 @@ def summarise(records: list[dict], errors: str = "errors") -> Summary:
 # Ground truth
 
 
-def _frame_index(file_path: str) -> int:
+def frame_index(file_path: str) -> int:
     """ns-process-data renames the sorted inputs frame_00001.png...; our inputs are view_<i>.png in order."""
     return int(Path(file_path).stem.split("_")[-1]) - 1
 
@@ -293,14 +293,14 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
     centres and by the poses (:func:`tie_to_world`), and the capture's world scale (mean distance of its true centres
     from their mean)."""
     meta = json.loads(dataset_transforms(case_dir, cap.name).read_text())
-    idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
+    idx = np.array([frame_index(f["file_path"]) for f in meta["frames"]])
     stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
     true = cap.c2w_world[idx]
     misposed, posed = misposed_views(stored, true), len(idx)  # what COLMAP made of the whole capture
     trained = training_transforms(case_dir, cap.name)
     if trained != dataset_transforms(case_dir, cap.name):  # the ties are those of the views the run trained on
         meta = json.loads(trained.read_text())
-        idx = np.array([_frame_index(f["file_path"]) for f in meta["frames"]])
+        idx = np.array([frame_index(f["file_path"]) for f in meta["frames"]])
         stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
         true = cap.c2w_world[idx]
     world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
@@ -334,7 +334,7 @@ def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: fl
     optimized = runs.optimized_poses(model, c2w).numpy().astype(np.float64)
     if np.array_equal(optimized, c2w.numpy()):
         return None
-    T, rot_err, centre_err = tie_to_world(optimized, c2w_world[[_frame_index(str(f)) for f in views.image_filenames]],
+    T, rot_err, centre_err = tie_to_world(optimized, c2w_world[[frame_index(str(f)) for f in views.image_filenames]],
                                            world_scale)  # fmt: skip
     return {"optimized_rot_err_deg_median": rot_err, "optimized_centre_err_median": centre_err,
             "nerf_to_world_optimized": T}  # fmt: skip
@@ -354,12 +354,17 @@ MISPOSED_DEG = 5.0
 """A view COLMAP posed more than this off the capture's pose tie is misposed (the paper's rotation failure rule)."""
 
 
-def misposed_views(poses: np.ndarray, true: np.ndarray, max_deg: float = MISPOSED_DEG) -> int:
-    """How many of a capture's views ``poses`` (its stored frame) lie more than ``max_deg`` off their true rotation
+def misposed_frames(poses: np.ndarray, true: np.ndarray, max_deg: float = MISPOSED_DEG) -> np.ndarray:
+    """Which of a capture's views ``poses`` (its stored frame) lie more than ``max_deg`` off their true rotation
     after the tie fitted to the views' rotations: on repeated structure COLMAP can pose part of a capture by the wrong
     copy (a room's views of one half taken for the other), which the median residuals hide."""
     est = sim3.estimate_sim3_from_poses(poses, true)
-    return int(np.sum(np.asarray(est.rot_residuals_deg) > max_deg))
+    return np.asarray(est.rot_residuals_deg) > max_deg
+
+
+def misposed_views(poses: np.ndarray, true: np.ndarray, max_deg: float = MISPOSED_DEG) -> int:
+    """How many views :func:`misposed_frames` finds."""
+    return int(misposed_frames(poses, true, max_deg).sum())
 
 
 def tie_to_world(

@@ -50,7 +50,7 @@ def test_exact_and_bent_reconstructions(quality, tmp_path):
     out = tmp_path / "report" / "quality.md"
     out.parent.mkdir()
     quality.write_report(rows, out, "python scripts/colmap_quality.py ...")
-    assert "| street:3 | 64x48 | capture_0 | 50/" in out.read_text()
+    assert "| street:3 | 64x48 | exhaustive | capture_0 | 50/" in out.read_text()
     assert json.loads(out.with_suffix(".json").read_text()) == rows
 
 
@@ -66,6 +66,7 @@ def test_views_posed_by_the_wrong_copy_are_counted(quality, tmp_path):
     _write_dataset(tmp_path, layout.captures[1].name, layout.captures[1].c2w_world, np.arange(64))
     folded, clean = quality.measure("room:3", tmp_path, 64, 48)
     assert folded["misposed"] == 20 and clean["misposed"] == 0
+    assert folded["check"] == 20 and folded["check_misposed"] == 20 and clean["check"] == 0  # the check, no truth
     assert folded["rot_err_deg"] < 90  # what the centres' tie shows of it
 
 
