@@ -739,6 +739,14 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
             "before its first stage), so the pair differs in training alone" if m == "exhaustive" else
             f"{c} uses the images and test views of `{src}` (copied before its first stage) and its own COLMAP "
             f"datasets ({m} matching), so the pair differs from COLMAP on" for c, src, m in shared) + ".", ""]
+    for r in records:
+        if r.get("capture_check"):
+            parts = [f"{cap}: " + ("not checked (file order no sequence)" if not c["checked"] else
+                                   f"folded, {c['suspect_views']} of {c['num_views']} views suspect, trained on the "
+                                   "larger side" if c["folded"] else "not folded")
+                     for cap, c in r["capture_check"].items()]  # fmt: skip
+            lines += [f"Capture check of {r['case']} (`ns-nerfuser-check-capture --write-larger-side` before "
+                      f"training): {'; '.join(parts)}.", ""]  # fmt: skip
     lines += ["## Registration (every default of `ns-nerfuser-register`)", "",
               "| case | NeRF | r_err (deg) | t_err | s_err | ok | COLMAP rot err (deg, median per capture) | "
               "COLMAP centre err (median, / capture radius) | COLMAP bend (deg) | posed / views |",

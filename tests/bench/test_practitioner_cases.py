@@ -160,6 +160,27 @@ def test_share_captures_copies_a_complete_sibling_once(tmp_path):
     assert (case / "datasets" / "capture_0" / "transforms.json").read_text() == "mine"
 
 
+def test_a_case_posed_by_another_matching_shares_the_images_alone(load_script, tmp_path):
+    """``--matching-method sequential`` poses the same images again: images and test views are copied, COLMAP's
+    datasets, logs and times are not; ``--check-captures`` trains the same datasets otherwise (all shared)."""
+    bench = load_script("bench_practitioner")
+    cfg = bench.BenchPractitioner(cases=["room:6"], root=tmp_path)
+    seq = bench.replace(cfg, matching_method="sequential")
+    checked = bench.replace(cfg, check_captures=True)
+    assert [bench.case_folder("room:6", c) for c in (cfg, seq, checked)] == [
+        "room-6", "room-6-sequential", "room-6-checked"]
+    assert "room-6" in bench.training_siblings("room:6", checked)
+    assert "room-6" in bench.image_siblings("room:6", seq) and "room-6" not in bench.training_siblings("room:6", seq)
+    assert bench.case_options(seq) == ["--matching-method", "sequential"]
+    caps = ["capture_a", "capture_b"]
+    _captured(tmp_path / "room-6", caps, {"images capture_a": 80.0, "colmap capture_a": 120.0})
+    case = tmp_path / "room-6-sequential"
+    assert share_captures(case, caps, [tmp_path / "room-6"], parts=("images", "test")) == tmp_path / "room-6"
+    assert (case / "images").is_dir() and (case / "test").is_dir() and not (case / "datasets").exists()
+    assert not list(case.glob("colmap_*.log"))
+    assert json.loads((case / "times.json").read_text()) == {"images capture_a": 80.0}
+
+
 def test_share_captures_without_a_complete_sibling_does_nothing(tmp_path):
     case = tmp_path / "room-3"
     case.mkdir()
