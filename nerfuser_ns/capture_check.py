@@ -2,7 +2,7 @@
 
 On repeated structure (a room whose walls look alike from either side) COLMAP can pose a part of a capture by the
 wrong copy of the structure: a block of views lands a half turn away from where it was filmed, the bundle adjustment
-accepts it, and the run is trained on the folded poses. No registration can mend that run; it has to be posed again.
+accepts it, and the run is trained on the folded poses. No registration can mend that run.
 
 Views filmed in sequence (a video's frames, photos named in the order they were taken) turn by small steps from one
 to the next. A view posed by the wrong copy sits roughly a half turn away from its correctly posed neighbour, so in
@@ -12,8 +12,10 @@ unordered photos, a multi-camera rig) cannot be checked this way and are reporte
 
 The views between jumps alternate between the two sides of the fold; the smaller side is reported as the suspect
 views. Each side alone is a consistent capture (its views posed against the same copy), so a folded capture can be
-trained on its larger side (:func:`write_larger_side`). A fold by a translation (a copy further along a street) is not
-detected.
+trained on its larger side (:func:`write_larger_side`); that side may miss the views of the place's unique objects
+(on our rooms the folded block held every far view of the door), which a registration needs to tell the place from
+its copy. Neighbours whose file names' frame numbers lie more than :data:`MAX_FRAME_GAP` apart are not compared
+(views are missing between them). A fold by a translation (a copy further along a street) is not detected.
 """
 
 from __future__ import annotations
