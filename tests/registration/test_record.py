@@ -74,6 +74,15 @@ def test_the_typed_result_is_the_record(oc_record):
     assert json.dumps(result.to_record(), indent=2) == json.dumps(oc_record, indent=2)  # key order too
 
 
+def test_capture_checks_are_a_typed_field_of_the_record(oc_record):
+    """The registration's fold checks of each run's training cameras read back as the typed field, not as extra."""
+    checks = {"a": {"num_views": 58, "checked": True, "folded": True, "suspect_views": 20, "jumps": [["x", "y", 170]]}}
+    result = reg.RegistrationResult.from_record({**oc_record, "capture_checks": checks})
+    assert result.capture_checks == checks and "capture_checks" not in result.extra
+    assert result.to_record()["capture_checks"] == checks
+    assert "capture_checks" not in reg.RegistrationResult.from_record(oc_record).to_record()
+
+
 def test_minimal_form(tmp_path):
     entries = [reg.NerfEntry("a", tmp_path / "a.yml", np.eye(4)),
                reg.NerfEntry("b", tmp_path / "b.yml", sim3.make_sim3(np.eye(3), [1.0, 0.0, 0.0], 2.0))]  # fmt: skip
