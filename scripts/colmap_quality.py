@@ -18,15 +18,13 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import tyro
 
 from nerfuser_ns.bench.practitioner_cases import (
     case_layout,
+    colmap_misposed,
     colmap_tie,
     dataset_transforms,
-    frame_index,
-    misposed_frames,
 )
 from nerfuser_ns.capture_check import check_dataset
 from nerfuser_ns.files import write_text_atomic
@@ -66,13 +64,8 @@ def measure(case: str, folder: Path, width: int, height: int) -> list[dict]:
     matching = matching_file.read_text().strip() if matching_file.is_file() else "exhaustive"
     for cap in layout.captures:
         g = colmap_tie(cap, folder)[0]
-        data = dataset_transforms(folder, cap.name)
-        frames = json.loads(data.read_text())["frames"]
-        stored = np.array([f["transform_matrix"] for f in frames], dtype=np.float64)
-        wrong = misposed_frames(stored, cap.c2w_world[[frame_index(f["file_path"]) for f in frames]])
-        check = check_dataset(data)
-        suspect = set(check.suspect)
-        found = sum(1 for f, w in zip(frames, wrong, strict=True) if w and str(f["file_path"]) in suspect)
+        check = check_dataset(dataset_transforms(folder, cap.name))
+        found = sum(colmap_misposed(cap, folder).get(f, False) for f in check.suspect)
         rows.append({"case": case, "folder": str(folder), "size": f"{width}x{height}", "capture": g["capture"],
                      "posed": g["posed_by_colmap"], "views": g["views"],
                      "rot_err_deg": g["colmap_rot_err_deg_median"], "centre_err": g["colmap_centre_err_median"],

@@ -292,32 +292,41 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
     :func:`capture_ground_truth` without its NeRF frames, the SIM(3) tying the stored frame to the world by the
     centres and by the poses (:func:`tie_to_world`), and the capture's world scale (mean distance of its true centres
     from their mean)."""
-    meta = json.loads(dataset_transforms(case_dir, cap.name).read_text())
-    idx = np.array([frame_index(f["file_path"]) for f in meta["frames"]])
-    stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
+    misposed = colmap_misposed(cap, case_dir)  # what COLMAP made of the whole capture
+    # the ties are those of the views the run trained on (the larger side of a checked capture)
+    idx, stored = _stored_poses(training_transforms(case_dir, cap.name))
     true = cap.c2w_world[idx]
-    misposed, posed = misposed_views(stored, true), len(idx)  # what COLMAP made of the whole capture
-    trained = training_transforms(case_dir, cap.name)
-    if trained != dataset_transforms(case_dir, cap.name):  # the ties are those of the views the run trained on
-        meta = json.loads(trained.read_text())
-        idx = np.array([frame_index(f["file_path"]) for f in meta["frames"]])
-        stored = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
-        true = cap.c2w_world[idx]
     world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
     data_to_world, rot_err, centre_err = tie_to_world(stored, true, world_scale)
     pose_to_world, pose_rot_err, _ = tie_to_world(stored, true, world_scale, rotations=True)
     record = {
         "capture": cap.name,
         "views": cap.num_views,
-        "posed_by_colmap": posed,
+        "posed_by_colmap": len(misposed),
         "trained_views": len(idx),
         "colmap_rot_err_deg_median": rot_err,
         "colmap_centre_err_median": centre_err,
         "colmap_bend_deg": colmap_bend_deg(stored, true, idx, world_scale),
         "pose_tie_rot_err_deg_median": pose_rot_err,
-        "pose_tie_misposed_views": misposed,
+        "pose_tie_misposed_views": sum(misposed.values()),
     }
     return record, data_to_world, pose_to_world, world_scale
+
+
+def colmap_misposed(cap, case_dir: Path) -> dict[str, bool]:
+    """Per view COLMAP posed (``file_path`` of ns-process-data's transforms.json), whether it is misposed
+    (:func:`misposed_frames`, against the capture's true poses)."""
+    transforms = dataset_transforms(case_dir, cap.name)
+    idx, stored = _stored_poses(transforms)
+    files = [str(f["file_path"]) for f in json.loads(transforms.read_text())["frames"]]
+    return dict(zip(files, map(bool, misposed_frames(stored, cap.c2w_world[idx])), strict=True))
+
+
+def _stored_poses(transforms: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A dataset's frame numbers and stored camera-to-world poses, in file order."""
+    frames = json.loads(transforms.read_text())["frames"]
+    idx = np.array([frame_index(f["file_path"]) for f in frames])
+    return idx, np.array([f["transform_matrix"] for f in frames], dtype=np.float64)
 
 
 def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: float) -> dict | None:
@@ -360,11 +369,6 @@ def misposed_frames(poses: np.ndarray, true: np.ndarray, max_deg: float = MISPOS
     copy (a room's views of one half taken for the other), which the median residuals hide."""
     est = sim3.estimate_sim3_from_poses(poses, true)
     return np.asarray(est.rot_residuals_deg) > max_deg
-
-
-def misposed_views(poses: np.ndarray, true: np.ndarray, max_deg: float = MISPOSED_DEG) -> int:
-    """How many views :func:`misposed_frames` finds."""
-    return int(misposed_frames(poses, true, max_deg).sum())
 
 
 def tie_to_world(

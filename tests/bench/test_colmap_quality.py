@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from nerfuser_ns import sim3
-from nerfuser_ns.bench.practitioner_cases import case_layout, colmap_tie, training_transforms
+from nerfuser_ns.bench.practitioner_cases import case_layout, colmap_misposed, colmap_tie, training_transforms
 from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset, write_larger_side
 
 
@@ -87,6 +87,8 @@ def test_a_run_trained_on_the_larger_side_is_tied_by_the_views_it_trained_on(tmp
     record = colmap_tie(cap, tmp_path)[0]
     assert record["posed_by_colmap"] == 64 and record["pose_tie_misposed_views"] == 20 and record["trained_views"] == 44
     assert record["colmap_centre_err_median"] < 1e-6 < folded["colmap_centre_err_median"]  # the centres' tie was bent
+    misposed = colmap_misposed(cap, tmp_path)  # per view, over the whole capture
+    assert [f for f, wrong in misposed.items() if wrong] == [f"images/frame_{i + 1:05d}.png" for i in range(20, 40)]
 
 
 def test_bad_cases_say_what_is_expected(quality, tmp_path):
