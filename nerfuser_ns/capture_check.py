@@ -7,8 +7,15 @@ accepts it, and the run is trained on the folded poses. No registration can mend
 Views filmed in sequence (a video's frames, photos named in the order they were taken) turn by small steps from one
 to the next. A view posed by the wrong copy sits roughly a half turn away from its correctly posed neighbour, so in
 file order the capture shows a *jump*: a turn of more than :data:`FOLD_TURN_DEG` between neighbours whose typical
-(median) turn is below :data:`SEQUENCE_STEP_DEG`. Captures whose file order is no sequence (median turn above it:
-unordered photos, a multi-camera rig) cannot be checked this way and are reported as unchecked, never as folded.
+(median) turn is below :data:`SEQUENCE_STEP_DEG`. A multi-camera rig exported per exposure interleaves its cameras
+in file order (camera 1, 2, ... of one exposure, then the next): each camera's views are then a sequence at a fixed
+lag, the number of cameras, and the smallest lag up to :data:`MAX_RIG_CAMERAS` whose median turn is below the step
+and at which the turns between neighbours repeat as a rigid rig's do (:func:`_is_rig`) is taken, each camera's views
+checked as a sequence of their own (their frame numbers modulo the lag). Captures
+whose file order is no sequence at any such lag (unordered photos) cannot be checked this way and are reported as
+unchecked, never as folded. A rig exported camera by camera (all of camera 1's views, then camera 2's) is one
+sequence with a turn at each change of camera: where two cameras look more than :data:`FOLD_TURN_DEG` apart (front
+and back) that change reads as a jump, a false alarm to rule out by looking at the views named.
 
 The views between jumps alternate between the two sides of the fold; the smaller side is reported as the suspect
 views. Each side alone is a consistent capture (its views posed against the same copy), so a folded capture can be
@@ -22,6 +29,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +47,9 @@ SEQUENCE_STEP_DEG = 30.0
 MAX_FRAME_GAP = 2
 """Neighbours in file order whose frame numbers differ by more are not compared (views between them are missing;
 nerfstudio's training split leaves out every tenth, a gap of 2)."""
+MAX_RIG_CAMERAS = 12
+"""The most cameras of a rig whose interleaved views (one exposure after another) the check looks for: lags 1 to
+this (a fixed bound, larger than the common rigs of 2 to 8 cameras)."""
 LARGER_SIDE_NAME = "transforms_larger_side.json"
 """Where ``ns-nerfuser-check-capture --write-larger-side`` writes a folded capture's larger side (beside its
 transforms.json)."""
@@ -58,6 +69,8 @@ class FoldCheck:
     """(view, next view, turn in degrees) for every jump."""
     suspect: tuple[str, ...]
     """The views on the smaller side of the jumps (none without jumps)."""
+    rig_cameras: int = 1
+    """The lag at which the file order is a sequence: 1 for one camera, the number of cameras of an interleaved rig."""
 
     @property
     def suspect_views(self) -> int:
@@ -72,14 +85,16 @@ class FoldCheck:
         if not self.folded:
             return None
         first = self.jumps[0]
+        order = "file order" if self.rig_cameras == 1 else f"file order, each of {self.rig_cameras} rig cameras"
         return (f"{subject}: the capture looks folded by COLMAP: {len(self.jumps)} jump(s) of more than "
-                f"{FOLD_TURN_DEG:.0f} deg between neighbouring views in file order (first {first[0]} -> {first[1]}, "
+                f"{FOLD_TURN_DEG:.0f} deg between neighbouring views in {order} (first {first[0]} -> {first[1]}, "
                 f"{first[2]:.0f} deg; median turn {self.median_turn_deg:.0f} deg): {self.suspect_views} of "
                 f"{self.num_views} views look posed by the wrong copy of repeated structure")  # fmt: skip
 
     def to_record(self) -> dict:
         return {"num_views": self.num_views, "median_turn_deg": round(self.median_turn_deg, 2),
-                "checked": self.checked, "folded": self.folded, "suspect_views": self.suspect_views,
+                "checked": self.checked, "rig_cameras": self.rig_cameras, "folded": self.folded,
+                "suspect_views": self.suspect_views,
                 "jumps": [[a, b, round(d, 1)] for a, b, d in self.jumps], "suspect": list(self.suspect)}  # fmt: skip
 
 
@@ -96,7 +111,8 @@ def fold_check(
     sequence_step_deg: float = SEQUENCE_STEP_DEG,
 ) -> FoldCheck:
     """Jumps between neighbouring views of one capture, its views taken in the order of ``names`` (file names; the
-    poses may be in any frame and scale: only relative rotations count)."""
+    poses may be in any frame and scale: only relative rotations count). Each of an interleaved rig's cameras is
+    checked as its own sequence; the smaller side is counted over all of them."""
     if len(names) != len(c2w):
         raise ValueError(f"fold_check: {len(c2w)} poses but {len(names)} names")
     order = np.argsort(np.asarray([str(n) for n in names]), kind="stable")
@@ -104,29 +120,112 @@ def fold_check(
     n = len(names)
     if n < 3:
         return FoldCheck(n, 0.0, False, (), ())
-    turns = neighbour_turns(np.asarray(c2w)[order])
-    adjacent = _adjacent(names)
-    median = float(np.median(turns[adjacent])) if adjacent.any() else 0.0
-    if median > sequence_step_deg or not adjacent.any():
-        return FoldCheck(n, median, False, (), ())
-    jump_at = np.flatnonzero((turns > fold_turn_deg) & adjacent)
-    side = np.zeros(n, dtype=np.int64)
-    side[jump_at + 1] = 1
-    side = np.cumsum(side) % 2  # each jump crosses the fold
+    R = np.asarray(c2w, dtype=np.float64)[order]
+    frames = _frame_numbers(names)
+    first_median = None
+    for lag in range(1, min(MAX_RIG_CAMERAS, n // 3) + 1):
+        key = frames % lag if frames is not None else np.arange(n) % lag
+        streams = [np.flatnonzero(key == r) for r in range(lag)]
+        parts = [(s, neighbour_turns(R[s]), _adjacent([names[i] for i in s], lag)) for s in streams if len(s) >= 2]
+        compared = np.concatenate([t[a] for _, t, a in parts]) if parts else np.zeros(0)
+        median = float(np.median(compared)) if compared.size else 0.0
+        first_median = median if first_median is None else first_median
+        if compared.size and median <= sequence_step_deg and (lag == 1 or _is_rig(R, frames, lag, sequence_step_deg)):
+            break
+    else:
+        return FoldCheck(n, first_median or 0.0, False, (), ())
+    edges = [(int(s[i]), int(s[i + 1]), float(t[i])) for s, t, a in parts for i in np.flatnonzero(a)]
+    if lag > 1:
+        edges += _rig_neighbour_edges(R, frames if frames is not None else np.arange(n), lag)
+    jumps = sorted((i, j, t) for i, j, t in edges if t > fold_turn_deg)
+    side = _sides(n, [(i, j, t > fold_turn_deg) for i, j, t in edges])
     smaller = 1 if side.sum() <= n - side.sum() else 0  # a tie: the side the first view is not on
-    jumps = tuple((names[i], names[i + 1], float(turns[i])) for i in jump_at)
-    return FoldCheck(n, median, True, jumps, tuple(names[i] for i in np.flatnonzero(side == smaller)))
+    suspect = tuple(names[i] for i in np.flatnonzero(side == smaller)) if jumps else ()
+    return FoldCheck(n, median, True, tuple((names[i], names[j], t) for i, j, t in jumps), suspect, rig_cameras=lag)
 
 
-def _adjacent(names: Sequence[str]) -> np.ndarray:
-    """Which neighbours in file order were filmed next to each other: all of them, unless every file name ends in a
-    frame number; then those at most :data:`MAX_FRAME_GAP` frames apart (a dataset without some views, e.g. a larger
-    side, or nerfstudio's training split, must not read as jumps where views are missing)."""
+def _rig_neighbour_edges(
+    R: Float[np.ndarray, "n 3 4"] | Float[np.ndarray, "n 4 4"], frames: np.ndarray, lag: int
+) -> list[tuple[int, int, float]]:
+    """A rig's neighbouring cameras of one exposure (consecutive frame numbers), compared after removing the rig's
+    mounting: the turn from camera k to camera k + 1 less its typical turn (the medoid over the exposures). These
+    tie the cameras' sequences together, so that a fold is one side of the whole capture, not one per camera."""
+    rot = np.asarray(R, dtype=np.float64)[:, :3, :3]
+    i = np.flatnonzero(np.diff(frames) == 1)
+    if not len(i):
+        return []
+    turn = np.swapaxes(rot[i], -1, -2) @ rot[i + 1]
+    edges = []
+    for r in range(lag):
+        k = i[frames[i] % lag == r]
+        if not len(k):
+            continue
+        q = turn[frames[i] % lag == r]
+        apart = sim3.rotation_angle_deg(np.swapaxes(q[:, None], -1, -2) @ q[None])
+        mounting = q[int(np.argmin(np.atleast_2d(apart).sum(1)))]
+        residual = np.atleast_1d(sim3.rotation_angle_deg(mounting.T @ q))
+        edges += [(int(a), int(a) + 1, float(d)) for a, d in zip(k, residual, strict=True)]
+    return edges
+
+
+def _sides(n: int, edges: Sequence[tuple[int, int, bool]]) -> np.ndarray:
+    """Each view's side of the fold (0: the first view's), walking the compared neighbours (``(i, j, jump)``; a jump
+    crosses the fold). Views no comparison links (missing views between them) join their file-order neighbour's
+    side: where nothing was compared, no fold is claimed."""
+    graph: list[list[tuple[int, bool]]] = [[] for _ in range(n)]
+    for i, j, jump in edges:
+        graph[i].append((j, jump))
+        graph[j].append((i, jump))
+    side = np.full(n, -1, dtype=np.int64)
+    for root in range(n):  # in file order: a view not yet reached starts on its predecessor's side
+        if side[root] >= 0:
+            continue
+        side[root] = side[root - 1] if root else 0
+        queue = deque([root])
+        while queue:
+            u = queue.popleft()
+            for v, jump in graph[u]:
+                if side[v] < 0:
+                    side[v] = side[u] ^ int(jump)
+                    queue.append(v)
+    return side
+
+
+def _is_rig(
+    R: Float[np.ndarray, "n 3 4"] | Float[np.ndarray, "n 4 4"], frames: np.ndarray | None, lag: int, step_deg: float
+) -> bool:
+    """Whether views in file order repeat a rig's mounting every ``lag`` views: the turn from each view to the next
+    (camera k to camera k + 1 of one exposure) is the turn ``lag`` views later, in the median within ``step_deg``.
+    Unordered views can show a small median turn at some lag by chance (streets, row houses); a rigid rig repeats."""
+    n = len(R)
+    index = frames - frames.min() if frames is not None else np.arange(n)
+    at = np.full(int(index.max()) + 1, -1)
+    at[index] = np.arange(n)
+    rot = np.asarray(R, dtype=np.float64)[:, :3, :3]
+    i = np.arange(len(at) - lag - 1)
+    ok = (at[i] >= 0) & (at[i + 1] >= 0) & (at[i + lag] >= 0) & (at[i + lag + 1] >= 0)
+    if not ok.any():
+        return False
+    a, b, c, d = (at[i[ok] + k] for k in (0, 1, lag, lag + 1))
+    turn = np.swapaxes(rot[a], -1, -2) @ rot[b]
+    later = np.swapaxes(rot[c], -1, -2) @ rot[d]
+    return float(np.median(sim3.rotation_angle_deg(np.swapaxes(turn, -1, -2) @ later))) <= step_deg
+
+
+def _frame_numbers(names: Sequence[str]) -> np.ndarray | None:
+    """The frame number ending each file name (``frame_00012.png``: 12), or None unless every name has one."""
     numbers = [re.search(r"(\d+)$", Path(name).stem) for name in names]
-    if not all(numbers):
+    return np.array([int(m.group(1)) for m in numbers]) if all(numbers) else None
+
+
+def _adjacent(names: Sequence[str], lag: int = 1) -> np.ndarray:
+    """Which neighbours in file order were filmed next to each other: all of them, unless every file name ends in a
+    frame number; then those at most :data:`MAX_FRAME_GAP` exposures (``lag`` frames each) apart (a dataset without
+    some views, e.g. a larger side, or nerfstudio's training split, must not read as jumps where views are missing)."""
+    frame = _frame_numbers(names)
+    if frame is None:
         return np.ones(len(names) - 1, dtype=bool)
-    frame = np.array([int(m.group(1)) for m in numbers])
-    return np.diff(frame) <= MAX_FRAME_GAP
+    return np.diff(frame) <= MAX_FRAME_GAP * lag
 
 
 def dataset_file(path: Path | str) -> Path:
