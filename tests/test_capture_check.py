@@ -105,6 +105,11 @@ def test_an_interleaved_rig_is_checked_camera_by_camera(rig_poses):
     assert check.checked and check.rig_cameras == 8 and not check.folded
 
 
+def test_cli_names_the_rig_it_checked(rig_poses, tmp_path, capsys):
+    assert cli.run(cli.CheckCaptureCommand([_write_dataset(tmp_path / "rig", rig_poses, _names(96))])) == 0
+    assert "not folded (96 views, each of 8 rig cameras" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("start", [1, 21, 70])
 def test_a_folded_block_of_a_rig_is_found_exactly(rig_poses, start):
     """A block of 24 views cut anywhere (mid-exposure too): one side for the whole rig, the block exactly."""

@@ -9,7 +9,8 @@ Example::
 
 On repeated structure COLMAP can pose a block of a capture's views by the wrong copy of the structure (see
 :mod:`nerfuser_ns.capture_check`); a run trained on such poses cannot be registered correctly by any method. The check
-needs views filmed in sequence (file names in the order taken) and says so when the order is no sequence.
+needs views filmed in sequence (file names in the order taken; a multi-camera rig's views interleaved exposure by
+exposure are checked camera by camera) and says so when the order is no sequence.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from rich.text import Text
 from nerfuser_ns.capture_check import (
     FOLD_TURN_DEG,
     LARGER_SIDE_NAME,
+    MAX_RIG_CAMERAS,
     SEQUENCE_STEP_DEG,
     check_dataset,
     dataset_file,
@@ -53,12 +55,14 @@ class CheckCaptureCommand:
         for path, check in checks:
             if not check.checked:
                 CONSOLE.print(f"{path}: not checked: the median turn between views in file order is "
-                              f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order is "
-                              "not a filmed sequence")  # fmt: skip
+                              f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order "
+                              f"is not a filmed sequence, nor a rig of up to {MAX_RIG_CAMERAS} cameras "
+                              "interleaved")  # fmt: skip
                 continue
             warning = check.warning(str(path))
             if warning is None:
-                CONSOLE.print(f"{path}: not folded ({check.num_views} views, median turn "
+                rig = f", each of {check.rig_cameras} rig cameras" if check.rig_cameras > 1 else ""
+                CONSOLE.print(f"{path}: not folded ({check.num_views} views{rig}, median turn "
                               f"{check.median_turn_deg:.1f} deg, no turn above {FOLD_TURN_DEG:.0f} deg)")  # fmt: skip
                 continue
             folded = True
