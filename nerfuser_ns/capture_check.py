@@ -50,6 +50,9 @@ nerfstudio's training split leaves out every tenth, a gap of 2)."""
 MAX_RIG_CAMERAS = 12
 """The most cameras of a rig whose interleaved views (one exposure after another) the check looks for: lags 1 to
 this (a fixed bound, larger than the common rigs of 2 to 8 cameras)."""
+MAX_FRAME_SPAN = 16
+"""Frame numbers ending the file names count frames only where they span at most this many per view (a larger side
+or a training split keeps at least every second view); otherwise (timestamps) the views are taken in file order."""
 LARGER_SIDE_NAME = "transforms_larger_side.json"
 """Where ``ns-nerfuser-check-capture --write-larger-side`` writes a folded capture's larger side (beside its
 transforms.json)."""
@@ -213,9 +216,14 @@ def _is_rig(
 
 
 def _frame_numbers(names: Sequence[str]) -> np.ndarray | None:
-    """The frame number ending each file name (``frame_00012.png``: 12), or None unless every name has one."""
+    """The frame number ending each file name (``frame_00012.png``: 12), or None unless every name has its own and
+    they count frames: numbers spread over more than :data:`MAX_FRAME_SPAN` per view are no frame index (timestamps)."""
     numbers = [re.search(r"(\d+)$", Path(name).stem) for name in names]
-    return np.array([int(m.group(1)) for m in numbers]) if all(numbers) else None
+    if not all(numbers):
+        return None
+    frames = np.array([int(m.group(1)) for m in numbers])
+    unique = len(np.unique(frames)) == len(frames)
+    return frames if unique and int(frames.max() - frames.min()) <= MAX_FRAME_SPAN * len(frames) else None
 
 
 def _adjacent(names: Sequence[str], lag: int = 1) -> np.ndarray:

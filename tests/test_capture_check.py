@@ -105,6 +105,14 @@ def test_an_interleaved_rig_is_checked_camera_by_camera(rig_poses):
     assert check.checked and check.rig_cameras == 8 and not check.folded
 
 
+def test_names_ending_in_timestamps_are_read_in_file_order(rig_poses):
+    """Millisecond timestamps are no frame index (one would span 10^12 frames): the views are taken in file order."""
+    names = [f"images/{1_700_000_000_000 + 33 * i}.png" for i in range(96)]
+    check = fold_check(_half_turn(rig_poses, np.arange(30, 54)), names)
+    assert check.checked and check.rig_cameras == 8
+    assert set(check.suspect) == set(names[30:54])
+
+
 def test_cli_names_the_rig_it_checked(rig_poses, tmp_path, capsys):
     assert cli.run(cli.CheckCaptureCommand([_write_dataset(tmp_path / "rig", rig_poses, _names(96))])) == 0
     assert "not folded (96 views, each of 8 rig cameras" in capsys.readouterr().out
