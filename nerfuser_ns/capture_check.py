@@ -50,6 +50,8 @@ nerfstudio's training split leaves out every tenth, a gap of 2)."""
 MAX_RIG_CAMERAS = 12
 """The most cameras of a rig whose interleaved views (one exposure after another) the check looks for: lags 1 to
 this (a fixed bound, larger than the common rigs of 2 to 8 cameras)."""
+MEDOID_SAMPLES = 256
+"""A rig's mounting (the typical turn between two of its cameras) is the medoid of at most this many exposures."""
 MAX_FRAME_SPAN = 16
 """Frame numbers ending the file names count frames only where they span at most this many per view (a larger side
 or a training split keeps at least every second view); otherwise (timestamps) the views are taken in file order."""
@@ -164,8 +166,9 @@ def _rig_neighbour_edges(
         if not len(k):
             continue
         q = turn[frames[i] % lag == r]
-        apart = sim3.rotation_angle_deg(np.swapaxes(q[:, None], -1, -2) @ q[None])
-        mounting = q[int(np.argmin(np.atleast_2d(apart).sum(1)))]
+        few = q[:: -(-len(q) // MEDOID_SAMPLES)]  # the medoid of an even subsample: bounded cost on long videos
+        apart = sim3.rotation_angle_deg(np.swapaxes(few[:, None], -1, -2) @ few[None])
+        mounting = few[int(np.argmin(np.atleast_2d(apart).sum(1)))]
         residual = np.atleast_1d(sim3.rotation_angle_deg(mounting.T @ q))
         edges += [(int(a), int(a) + 1, float(d)) for a, d in zip(k, residual, strict=True)]
     return edges

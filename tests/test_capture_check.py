@@ -113,6 +113,20 @@ def test_names_ending_in_timestamps_are_read_in_file_order(rig_poses):
     assert set(check.suspect) == set(names[30:54])
 
 
+def test_a_long_rig_video_is_checked_on_a_subsampled_mounting():
+    """600 exposures of a 2-camera rig (90 deg apart), more than MEDOID_SAMPLES: the block is still found exactly."""
+    mount = sim3.so3_exp(np.radians([0.0, 0.0, 90.0]))
+    poses = np.tile(np.eye(4), (1200, 1, 1))
+    for e in range(600):
+        front = sim3.so3_exp(np.radians([0.0, 0.0, float(e)]))
+        poses[2 * e, :3, :3], poses[2 * e + 1, :3, :3] = front, front @ mount
+        poses[2 * e : 2 * e + 2, :3, 3] = [0.01 * e, 0.0, 0.0]
+    names = _names(1200)
+    check = fold_check(_half_turn(poses, np.arange(401, 701)), names)
+    assert check.checked and check.rig_cameras == 2
+    assert set(check.suspect) == set(names[401:701])
+
+
 def test_cli_names_the_rig_it_checked(rig_poses, tmp_path, capsys):
     assert cli.run(cli.CheckCaptureCommand([_write_dataset(tmp_path / "rig", rig_poses, _names(96))])) == 0
     assert "not folded (96 views, each of 8 rig cameras" in capsys.readouterr().out
