@@ -131,7 +131,8 @@ def fold_check(
     for lag in range(1, min(MAX_RIG_CAMERAS, n // 3) + 1):
         key = frames % lag if frames is not None else np.arange(n) % lag
         streams = [np.flatnonzero(key == r) for r in range(lag)]
-        parts = [(s, neighbour_turns(R[s]), _adjacent([names[i] for i in s], lag)) for s in streams if len(s) >= 2]
+        parts = [(s, neighbour_turns(R[s]), _adjacent(frames[s] if frames is not None else None, len(s), lag))
+                 for s in streams if len(s) >= 2]  # fmt: skip
         compared = np.concatenate([t[a] for _, t, a in parts]) if parts else np.zeros(0)
         median = float(np.median(compared)) if compared.size else 0.0
         first_median = median if first_median is None else first_median
@@ -229,14 +230,14 @@ def _frame_numbers(names: Sequence[str]) -> np.ndarray | None:
     return frames if unique and int(frames.max() - frames.min()) <= MAX_FRAME_SPAN * len(frames) else None
 
 
-def _adjacent(names: Sequence[str], lag: int = 1) -> np.ndarray:
-    """Which neighbours in file order were filmed next to each other: all of them, unless every file name ends in a
-    frame number; then those at most :data:`MAX_FRAME_GAP` exposures (``lag`` frames each) apart (a dataset without
-    some views, e.g. a larger side, or nerfstudio's training split, must not read as jumps where views are missing)."""
-    frame = _frame_numbers(names)
-    if frame is None:
-        return np.ones(len(names) - 1, dtype=bool)
-    return np.diff(frame) <= MAX_FRAME_GAP * lag
+def _adjacent(frames: np.ndarray | None, count: int, lag: int = 1) -> np.ndarray:
+    """Which of ``count`` neighbours in file order were filmed next to each other: all of them without frame numbers
+    (:func:`_frame_numbers` of the whole capture, so every stream of a rig is judged alike); with them, those at most
+    :data:`MAX_FRAME_GAP` exposures (``lag`` frames each) apart (a dataset without some views, e.g. a larger side, or
+    nerfstudio's training split, must not read as jumps where views are missing)."""
+    if frames is None:
+        return np.ones(count - 1, dtype=bool)
+    return np.diff(frames) <= MAX_FRAME_GAP * lag
 
 
 def dataset_file(path: Path | str) -> Path:
