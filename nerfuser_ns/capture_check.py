@@ -163,10 +163,10 @@ def _rig_neighbour_edges(
     turn = np.swapaxes(rot[i], -1, -2) @ rot[i + 1]
     edges = []
     for r in range(lag):
-        k = i[frames[i] % lag == r]
-        if not len(k):
+        camera = frames[i] % lag == r
+        if not camera.any():
             continue
-        q = turn[frames[i] % lag == r]
+        k, q = i[camera], turn[camera]
         few = q[:: -(-len(q) // MEDOID_SAMPLES)]  # the medoid of an even subsample: bounded cost on long videos
         apart = sim3.rotation_angle_deg(np.swapaxes(few[:, None], -1, -2) @ few[None])
         mounting = few[int(np.argmin(np.atleast_2d(apart).sum(1)))]
