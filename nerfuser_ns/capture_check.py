@@ -126,13 +126,11 @@ def fold_check(
     if n < 3:
         return FoldCheck(n, 0.0, False, (), ())
     R = np.asarray(c2w, dtype=np.float64)[order]
-    frames = _frame_numbers(names)
+    frames = _frame_index(names)
     first_median = None
     for lag in range(1, min(MAX_RIG_CAMERAS, n // 3) + 1):
-        key = frames % lag if frames is not None else np.arange(n) % lag
-        streams = [np.flatnonzero(key == r) for r in range(lag)]
-        parts = [(s, neighbour_turns(R[s]), _adjacent(frames[s] if frames is not None else None, len(s), lag))
-                 for s in streams if len(s) >= 2]  # fmt: skip
+        streams = [np.flatnonzero(frames % lag == r) for r in range(lag)]
+        parts = [(s, neighbour_turns(R[s]), _adjacent(frames[s], lag)) for s in streams if len(s) >= 2]
         compared = np.concatenate([t[a] for _, t, a in parts]) if parts else np.zeros(0)
         median = float(np.median(compared)) if compared.size else 0.0
         first_median = median if first_median is None else first_median
@@ -142,7 +140,7 @@ def fold_check(
         return FoldCheck(n, first_median or 0.0, False, (), ())
     edges = [(int(s[i]), int(s[i + 1]), float(t[i])) for s, t, a in parts for i in np.flatnonzero(a)]
     if lag > 1:
-        edges += _rig_neighbour_edges(R, frames if frames is not None else np.arange(n), lag)
+        edges += _rig_neighbour_edges(R, frames, lag)
     jumps = sorted((i, j, t) for i, j, t in edges if t > fold_turn_deg)
     side = _sides(n, [(i, j, t > fold_turn_deg) for i, j, t in edges])
     smaller = 1 if side.sum() <= n - side.sum() else 0  # a tie: the side the first view is not on
@@ -199,15 +197,14 @@ def _sides(n: int, edges: Sequence[tuple[int, int, bool]]) -> np.ndarray:
 
 
 def _is_rig(
-    R: Float[np.ndarray, "n 3 4"] | Float[np.ndarray, "n 4 4"], frames: np.ndarray | None, lag: int, step_deg: float
+    R: Float[np.ndarray, "n 3 4"] | Float[np.ndarray, "n 4 4"], frames: np.ndarray, lag: int, step_deg: float
 ) -> bool:
     """Whether views in file order repeat a rig's mounting every ``lag`` views: the turn from each view to the next
     (camera k to camera k + 1 of one exposure) is the turn ``lag`` views later, in the median within ``step_deg``.
     Unordered views can show a small median turn at some lag by chance (streets, row houses); a rigid rig repeats."""
-    n = len(R)
-    index = frames - frames.min() if frames is not None else np.arange(n)
+    index = frames - frames.min()
     at = np.full(int(index.max()) + 1, -1)
-    at[index] = np.arange(n)
+    at[index] = np.arange(len(R))
     rot = np.asarray(R, dtype=np.float64)[:, :3, :3]
     i = np.arange(len(at) - lag - 1)
     ok = (at[i] >= 0) & (at[i + 1] >= 0) & (at[i + lag] >= 0) & (at[i + lag + 1] >= 0)
@@ -219,24 +216,24 @@ def _is_rig(
     return float(np.median(sim3.rotation_angle_deg(np.swapaxes(turn, -1, -2) @ later))) <= step_deg
 
 
-def _frame_numbers(names: Sequence[str]) -> np.ndarray | None:
-    """The frame number ending each file name (``frame_00012.png``: 12), or None unless every name has its own and
-    they count frames: numbers spread over more than :data:`MAX_FRAME_SPAN` per view are no frame index (timestamps)."""
+def _frame_index(names: Sequence[str]) -> np.ndarray:
+    """Each view's frame: the number ending its file name (``frame_00012.png``: 12) where every name has its own and
+    they count frames, else its place in file order (names without numbers, repeated numbers, or numbers spread over
+    more than :data:`MAX_FRAME_SPAN` per view, such as timestamps)."""
     numbers = [re.search(r"(\d+)$", Path(name).stem) for name in names]
-    if not all(numbers):
-        return None
-    frames = np.array([int(m.group(1)) for m in numbers])
-    unique = len(np.unique(frames)) == len(frames)
-    return frames if unique and int(frames.max() - frames.min()) <= MAX_FRAME_SPAN * len(frames) else None
+    if all(numbers):
+        frames = np.array([int(m.group(1)) for m in numbers])
+        unique = len(np.unique(frames)) == len(frames)
+        if unique and int(frames.max() - frames.min()) <= MAX_FRAME_SPAN * len(frames):
+            return frames
+    return np.arange(len(names))
 
 
-def _adjacent(frames: np.ndarray | None, count: int, lag: int = 1) -> np.ndarray:
-    """Which of ``count`` neighbours in file order were filmed next to each other: all of them without frame numbers
-    (:func:`_frame_numbers` of the whole capture, so every stream of a rig is judged alike); with them, those at most
-    :data:`MAX_FRAME_GAP` exposures (``lag`` frames each) apart (a dataset without some views, e.g. a larger side, or
-    nerfstudio's training split, must not read as jumps where views are missing)."""
-    if frames is None:
-        return np.ones(count - 1, dtype=bool)
+def _adjacent(frames: np.ndarray, lag: int = 1) -> np.ndarray:
+    """Which neighbours in file order were filmed next to each other (``frames``: :func:`_frame_index` of the whole
+    capture, so every stream of a rig is judged alike): those at most :data:`MAX_FRAME_GAP` exposures (``lag`` frames
+    each) apart (a dataset without some views, e.g. a larger side, or nerfstudio's training split, must not read as
+    jumps where views are missing)."""
     return np.diff(frames) <= MAX_FRAME_GAP * lag
 
 
