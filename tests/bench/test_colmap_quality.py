@@ -45,7 +45,9 @@ def test_exact_and_bent_reconstructions(quality, tmp_path):
     exact, bent = rows
     assert (exact["posed"], exact["views"]) == (50, exact_cap.num_views) and exact["size"] == "64x48"
     assert exact["rot_err_deg"] < 1e-6 and exact["centre_err"] < 1e-6 and exact["bend_deg"] < 1e-6
+    assert exact["pose_tie_rot_err_deg"] < 1e-6
     assert bent["bend_deg"] == pytest.approx(4.0, abs=0.3) and bent["rot_err_deg"] > 0.5
+    assert bent["pose_tie_rot_err_deg"] > 0.5  # no tie of the views' rotations undoes a bend either
     assert exact["misposed"] == 0 and bent["misposed"] == 0  # a 4 deg bend splits the error, no view is 5 deg off
     out = tmp_path / "report" / "quality.md"
     out.parent.mkdir()
