@@ -23,6 +23,13 @@ trained on its larger side (:func:`write_larger_side`); that side may miss the v
 (on our rooms the folded block held every far view of the door), which a registration needs to tell the place from
 its copy. Neighbours whose file names' frame numbers lie more than :data:`MAX_FRAME_GAP` apart are not compared
 (views are missing between them). A fold by a translation (a copy further along a street) is not detected.
+
+COLMAP's camera can drift too. ``ns-process-data`` gives COLMAP a camera with a focal length per axis and refines the
+principal point; where the views do not fix them (a car's rig moving along one line, every camera level) the bundle
+adjustment trades the vertical focal length and principal point against the scene's depth, and the capture's
+geometry comes out stretched along the vertical: no similarity transform then maps one run onto another, and every
+view's rotation is off by a common tilt in its own frame. Camera pixels are square, so a vertical over horizontal
+focal length more than :data:`MAX_ASPECT_DEVIATION` from 1 is reported (:func:`intrinsics_check`).
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ import numpy as np
 from jaxtyping import Float
 
 from nerfuser_ns import sim3
+from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.files import write_text_atomic
 
 FOLD_TURN_DEG = 120.0
@@ -55,6 +63,15 @@ MEDOID_SAMPLES = 256
 MAX_FRAME_SPAN = 16
 """Frame numbers ending the file names count frames only where they span at most this many per view (a larger side
 or a training split keeps at least every second view); otherwise (timestamps) the views are taken in file order."""
+MAX_ASPECT_DEVIATION = 0.02
+"""COLMAP's vertical over horizontal focal length may differ from 1 by at most this: sensors have square pixels and
+COLMAP recovers their ratio to well within it where the views fix it (within 0.004 on our street and row-house
+captures); drifted drive captures showed 1.07 to 1.41."""
+SQUARE_PIXEL_ADVICE = (
+    "pose it again with one focal length: ns-process-data images ... --camera-type simple_pinhole "
+    "(images without lens distortion), and check again"
+)
+"""What to do about a capture whose intrinsics drifted."""
 LARGER_SIDE_NAME = "transforms_larger_side.json"
 """Where ``ns-nerfuser-check-capture --write-larger-side`` writes a folded capture's larger side (beside its
 transforms.json)."""
@@ -259,6 +276,64 @@ def check_dataset(path: Path | str) -> FoldCheck:
     if c2w.ndim != 3 or c2w.shape[1:] not in ((4, 4), (3, 4)):
         raise ValueError(f"{file}: transform_matrix of shape {c2w.shape[1:]}, expected 4x4")
     return fold_check(c2w, names)
+
+
+@dataclass(frozen=True)
+class IntrinsicsCheck:
+    """What :func:`intrinsics_check` found in one capture's camera."""
+
+    intrinsics: Intrinsics
+    """The capture's camera (the median over its frames where they differ)."""
+
+    @property
+    def aspect(self) -> float:
+        """Vertical over horizontal focal length (1 for square pixels)."""
+        return self.intrinsics.fy / self.intrinsics.fx
+
+    @property
+    def drifted(self) -> bool:
+        return abs(self.aspect - 1.0) > MAX_ASPECT_DEVIATION
+
+    def warning(self, subject: str) -> str | None:
+        """One line for a drifted camera naming ``subject`` (a run or a dataset); None otherwise."""
+        if not self.drifted:
+            return None
+        k = self.intrinsics
+        return (f"{subject}: COLMAP's camera looks drifted: vertical focal length {k.fy:.1f} px against "
+                f"{k.fx:.1f} horizontal (ratio {self.aspect:.3f}; square pixels give 1 +- {MAX_ASPECT_DEVIATION}), "
+                f"principal point ({k.cx:.1f}, {k.cy:.1f}) in {k.width}x{k.height}: the capture's geometry is "
+                "stretched and cannot be registered to another by a similarity")  # fmt: skip
+
+    def to_record(self) -> dict:
+        k = self.intrinsics
+        return {"fx": round(k.fx, 3), "fy": round(k.fy, 3), "cx": round(k.cx, 3), "cy": round(k.cy, 3),
+                "width": k.width, "height": k.height, "aspect": round(self.aspect, 4),
+                "drifted": self.drifted}  # fmt: skip
+
+
+def intrinsics_check(intrinsics: Intrinsics) -> IntrinsicsCheck:
+    """Whether a capture's camera keeps square pixels (see the module's last paragraph)."""
+    if not (intrinsics.fx > 0 and intrinsics.fy > 0):
+        raise ValueError(f"focal lengths ({intrinsics.fx}, {intrinsics.fy}) must be positive")
+    return IntrinsicsCheck(intrinsics)
+
+
+def check_dataset_intrinsics(path: Path | str) -> IntrinsicsCheck:
+    """:func:`intrinsics_check` on a nerfstudio dataset's camera: ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``
+    of each frame or, where a frame has none, of the file (the median over frames, as the registration reads a run's
+    training cameras)."""
+    file = dataset_file(path)
+    keys = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+    try:
+        meta = json.loads(file.read_text())
+        values = np.array([[float(f.get(k, meta.get(k))) for k in keys] for f in meta["frames"]], dtype=np.float64)
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{file}: no camera intrinsics (fl_x, fl_y, cx, cy, w, h) in a nerfstudio transforms.json "
+                         f"({type(e).__name__}: {e})") from None  # fmt: skip
+    if len(values) == 0:
+        raise ValueError(f"{file}: no frames")
+    fx, fy, cx, cy, w, h = np.median(values, axis=0)
+    return intrinsics_check(Intrinsics(float(fx), float(fy), float(cx), float(cy), int(round(w)), int(round(h))))
 
 
 def write_larger_side(path: Path | str, check: FoldCheck, output: Path | str) -> Path:

@@ -159,6 +159,11 @@ class BenchPractitioner:
     throughout, since nerfstudio's default ``vocab_tree`` downloads its tree) or sequential (neighbours in file order,
     what the registration's fold warning advises for a filmed sequence). Case folders get the suffix ``-sequential``;
     such a folder shares the images and test views of the exhaustive one (never its COLMAP datasets)."""
+    camera_type: Literal["perspective", "simple_pinhole"] = "perspective"
+    """``ns-process-data --camera-type``: perspective (its default: COLMAP's OPENCV camera, a focal length per axis)
+    or simple_pinhole (one focal length, no distortion: what ``ns-nerfuser-check-capture`` advises for a capture whose
+    vertical focal length drifted). Case folders get the suffix ``-simple-pinhole``; such a folder shares the images
+    and test views of the perspective one (never its COLMAP datasets)."""
     check_captures: bool = False
     """Before training, run ``ns-nerfuser-check-capture --write-larger-side`` on each capture's COLMAP dataset, as a
     user following its advice: a capture it finds folded trains on its larger side. Case folders get the suffix
@@ -195,6 +200,7 @@ def case_folder(case: str, cfg: BenchPractitioner) -> str:
     if cfg.appearance_jitter > 0:
         name += f"-{'bracket' if cfg.appearance_bracket else 'jitter'}{cfg.appearance_jitter:g}"
     name += "-sequential" if cfg.matching_method == "sequential" else ""
+    name += "-simple-pinhole" if cfg.camera_type == "simple_pinhole" else ""
     name += "-checked" if cfg.check_captures else ""
     return name + ("-camopt-off" if cfg.camera_optimizer == "off" else "")
 
@@ -209,10 +215,12 @@ def training_siblings(case: str, cfg: BenchPractitioner) -> list[str]:
 
 
 def image_siblings(case: str, cfg: BenchPractitioner) -> list[str]:
-    """The other folders of the same case (same images) posed otherwise (COLMAP matching) or checked otherwise."""
+    """The other folders of the same case (same images) posed otherwise (COLMAP matching or camera) or checked
+    otherwise."""
     own = case_folder(case, cfg)
-    names = [case_folder(case, replace(cfg, matching_method=m, camera_optimizer=v, check_captures=c))
-             for m in ("exhaustive", "sequential") for v in ("default", "off") for c in (False, True)]  # fmt: skip
+    names = [case_folder(case, replace(cfg, matching_method=m, camera_type=t, camera_optimizer=v, check_captures=c))
+             for m in ("exhaustive", "sequential") for t in ("perspective", "simple_pinhole")
+             for v in ("default", "off") for c in (False, True)]  # fmt: skip
     return [n for n in names if n != own and n not in training_siblings(case, cfg)]
 
 
@@ -231,6 +239,8 @@ def case_options(cfg: BenchPractitioner) -> list[str]:
         opts += ["--camera-optimizer", cfg.camera_optimizer]
     if cfg.matching_method != "exhaustive":
         opts += ["--matching-method", cfg.matching_method]
+    if cfg.camera_type != "perspective":
+        opts += ["--camera-type", cfg.camera_type]
     if cfg.check_captures:
         opts += ["--check-captures"]
     return opts
@@ -268,9 +278,11 @@ def stage_scene(layout, case_dir: Path) -> None:
         write_capture(layout, view, test_transforms(case_dir).parent, world_frame=True, supersample=2)
 
 
-def stage_colmap(layout, case_dir: Path, matching_method: str = "exhaustive") -> None:
+def stage_colmap(
+    layout, case_dir: Path, matching_method: str = "exhaustive", camera_type: str = "perspective"
+) -> None:
     """Pose each capture with ``ns-process-data images`` (COLMAP, CPU SIFT); ``colmap_matching.txt`` names the
-    matching (cases without it were posed by exhaustive matching)."""
+    matching (cases without it were posed by exhaustive matching); ``camera_type`` is ns-process-data's."""
     if not (case_dir / "colmap_matching.txt").is_file():
         write_text_atomic(case_dir / "colmap_matching.txt", matching_method + "\n")
     for cap in layout.captures:
@@ -280,6 +292,7 @@ def stage_colmap(layout, case_dir: Path, matching_method: str = "exhaustive") ->
         cmd = [str(BIN / "ns-process-data"), "images", "--data", str(images_done(case_dir, cap.name).parent),
                "--output-dir", str(out.parent), "--no-gpu", "--matching-method", matching_method,
                "--num-downscales", "0"]  # fmt: skip
+        cmd += ["--camera-type", camera_type] if camera_type != "perspective" else []
         seconds = _run(cmd, case_dir / f"colmap_{cap.name}.log")
         if not out.is_file():
             raise RuntimeError(f"ns-process-data wrote no transforms.json for {cap.name}: COLMAP posed nothing")
@@ -1070,7 +1083,7 @@ def main(cfg: BenchPractitioner) -> None:
                                       "another COLMAP matching; --no-share-captures to render them anew)")
                 stage_scene(layout, case_dir)
             if "colmap" in cfg.stages:
-                stage_colmap(layout, case_dir, cfg.matching_method)
+                stage_colmap(layout, case_dir, cfg.matching_method, cfg.camera_type)
             if cfg.check_captures and "train" in cfg.stages:
                 stage_check(layout, case_dir)
             if "train" in cfg.stages:

@@ -13,7 +13,17 @@ from scipy.spatial.transform import Rotation
 
 from nerfuser_ns import sim3
 from nerfuser_ns.bench.practitioner_cases import case_layout
-from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset, fold_check, neighbour_turns, write_larger_side
+from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.capture_check import (
+    LARGER_SIDE_NAME,
+    MAX_ASPECT_DEVIATION,
+    check_dataset,
+    check_dataset_intrinsics,
+    fold_check,
+    intrinsics_check,
+    neighbour_turns,
+    write_larger_side,
+)
 from nerfuser_ns.registration.pipeline import check_captures
 from nerfuser_ns.scripts import check_capture as cli
 
@@ -41,9 +51,13 @@ def _names(n: int) -> list[str]:
     return [f"images/frame_{i + 1:05d}.png" for i in range(n)]
 
 
-def _write_dataset(folder: Path, poses: np.ndarray, names: list[str]) -> Path:
+SQUARE = {"fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48}
+"""ns-process-data's camera keys, square pixels."""
+
+
+def _write_dataset(folder: Path, poses: np.ndarray, names: list[str], camera: dict = SQUARE) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
-    meta = {"camera_model": "OPENCV", "ply_file_path": "sparse_pc.ply",
+    meta = {"camera_model": "OPENCV", "ply_file_path": "sparse_pc.ply", **camera,
             "frames": [{"file_path": n, "transform_matrix": p.tolist()} for n, p in zip(names, poses, strict=True)]}
     (folder / "transforms.json").write_text(json.dumps(meta))
     return folder
@@ -215,3 +229,69 @@ def test_registration_warns_about_a_run_trained_on_a_folded_capture(room_poses):
     text = console.export_text()
     assert "NeRF east" in text and "looks folded" in text and "NeRF west" not in text
     assert checks["east"]["folded"] and checks["east"]["suspect_views"] == 20 and not checks["west"]["folded"]
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The camera check: COLMAP's vertical focal length drifted from the horizontal one
+
+
+def test_square_pixels_pass_and_a_drifted_focal_ratio_is_reported():
+    square = intrinsics_check(Intrinsics(250.0, 251.0, 160.0, 120.0, 320, 240))
+    assert not square.drifted and square.warning("data/a") is None and square.aspect == pytest.approx(1.004)
+    drifted = intrinsics_check(Intrinsics(250.5, 352.9, 160.2, 102.9, 320, 240))  # COLMAP on a drive capture
+    warning = drifted.warning("data/b")
+    assert drifted.drifted and warning.startswith("data/b: ") and "1.409" in warning and "102.9" in warning
+    edge = 1 + MAX_ASPECT_DEVIATION
+    assert not intrinsics_check(Intrinsics(100.0, 100.0 * edge - 1e-6, 50, 50, 100, 100)).drifted
+    assert intrinsics_check(Intrinsics(100.0, 100.0 / (edge + 1e-3), 50, 50, 100, 100)).drifted  # either way
+    assert drifted.to_record()["drifted"] and drifted.to_record()["aspect"] == pytest.approx(352.9 / 250.5, abs=1e-4)
+    with pytest.raises(ValueError, match="must be positive"):
+        intrinsics_check(Intrinsics(0.0, 1.0, 0, 0, 1, 1))
+
+
+def test_dataset_camera_per_frame_overrides_the_file(room_poses, tmp_path):
+    folder = _write_dataset(tmp_path / "d", room_poses[:5], _names(5), {**SQUARE, "fl_y": 60.0})
+    meta = json.loads((folder / "transforms.json").read_text())
+    for f in meta["frames"][:3]:  # three of five frames carry their own (square) camera: the median is theirs
+        f.update(fl_x=40.0, fl_y=40.0)
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    check = check_dataset_intrinsics(folder)
+    assert (check.intrinsics.fx, check.intrinsics.fy, check.intrinsics.width) == (40.0, 40.0, 64) and not check.drifted
+    stretched = _write_dataset(tmp_path / "e", room_poses[:5], _names(5), {**SQUARE, "fl_y": 60.0})
+    assert check_dataset_intrinsics(stretched).drifted
+    missing = _write_dataset(tmp_path / "f", room_poses[:5], _names(5), {"fl_x": 50.0})
+    with pytest.raises(ValueError, match="no camera intrinsics") as e:
+        check_dataset_intrinsics(missing)
+    assert str(missing / "transforms.json") in str(e.value) and len(str(e.value).splitlines()) == 1
+
+
+def test_cli_reports_a_drifted_camera_with_what_to_run(room_poses, tmp_path, capsys):
+    clean = _write_dataset(tmp_path / "west", room_poses, _names(64))
+    drifted = _write_dataset(tmp_path / "east", room_poses, _names(64), {**SQUARE, "fl_y": 60.0, "cy": 20.0})
+    assert cli.run(cli.CheckCaptureCommand([clean])) == 0
+    capsys.readouterr()
+    assert cli.run(cli.CheckCaptureCommand([clean, drifted])) == 1
+    out = capsys.readouterr().out
+    assert f"{drifted}: COLMAP's camera looks drifted" in out and "--camera-type simple_pinhole" in out
+    assert f"{clean}: COLMAP's camera" not in out and "not folded" in out  # the fold check still runs on both
+
+
+class _TrainedRunWithCamera(_TrainedRun):
+    def __init__(self, name: str, poses: np.ndarray, camera: Intrinsics):
+        super().__init__(name, poses)
+        self._camera = camera
+
+    def training_intrinsics(self) -> Intrinsics:
+        return self._camera
+
+
+def test_registration_warns_about_a_run_trained_on_a_drifted_camera(room_poses):
+    console = Console(record=True, width=400)
+    square, stretched = Intrinsics(50.0, 50.0, 32, 24, 64, 48), Intrinsics(50.0, 58.0, 32, 20, 64, 48)
+    runs = [_TrainedRunWithCamera("east", room_poses, stretched), _TrainedRunWithCamera("west", room_poses, square),
+            _TrainedRun("north", room_poses)]  # fmt: skip
+    checks = check_captures(runs, console)
+    text = console.export_text()
+    assert "NeRF east: COLMAP's camera looks drifted" in text and "NeRF west" not in text and "simple_pinhole" in text
+    assert checks["east"]["camera"]["drifted"] and not checks["west"]["camera"]["drifted"]
+    assert "camera" not in checks["north"] and not checks["east"]["folded"]  # a renderer without its camera: no check

@@ -27,7 +27,7 @@ import numpy as np
 from rich.console import Console
 
 from nerfuser_ns import sim3
-from nerfuser_ns.capture_check import fold_check
+from nerfuser_ns.capture_check import SQUARE_PIXEL_ADVICE, fold_check, intrinsics_check
 from nerfuser_ns.registration.assemble import build_known_geometry_result, build_result
 from nerfuser_ns.registration.colocated import refine_colocated
 from nerfuser_ns.registration.config import (
@@ -162,9 +162,10 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
 
 
 def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) -> dict | None:
-    """The fold check (:mod:`nerfuser_ns.capture_check`) of each run's training cameras in file order, per NeRF name
-    (None when no renderer knows its training images); a folded capture is warned about: its run was trained on
-    folded poses, which no registration mends."""
+    """The fold check and the camera check (:mod:`nerfuser_ns.capture_check`) of each run's training cameras in file
+    order, per NeRF name (the fold check's record with the camera's under ``camera``; None when no renderer knows its
+    training images); a folded or drifted capture is warned about: its run was trained on those poses, which no
+    registration mends."""
     out = {}
     for r in renderers:
         files = getattr(r, "training_image_files", None)
@@ -172,6 +173,7 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
             continue
         try:
             poses, names = r.training_poses(), [str(f) for f in files()]
+            camera = getattr(r, "training_intrinsics", lambda: None)()  # optional (Renderer.training_poses)
         except (RegistrationError, ValueError, OSError):  # no dataset: resolve_sampling says so
             continue
         if poses is None or len(poses) != len(names):
@@ -183,6 +185,13 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
             console.print(f"[yellow]warning: {warning}. The run was trained on those poses and no registration mends "
                           "that: check its dataset with ns-nerfuser-check-capture, pose it again or train on its "
                           "larger side (docs/your_own_captures.md)[/]")  # fmt: skip
+        if camera is not None:
+            camera_check = intrinsics_check(camera)
+            out[r.name]["camera"] = camera_check.to_record()
+            warning = camera_check.warning(f"NeRF {r.name}")
+            if warning is not None:
+                console.print(f"[yellow]warning: {warning}. The run was trained on that camera: {SQUARE_PIXEL_ADVICE} "
+                              "before training (docs/your_own_captures.md)[/]")  # fmt: skip
     return out or None
 
 

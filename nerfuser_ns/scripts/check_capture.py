@@ -1,16 +1,19 @@
-"""``ns-nerfuser-check-capture``: has COLMAP folded a capture? Check ``ns-process-data``'s output before training.
+"""``ns-nerfuser-check-capture``: has COLMAP folded a capture, or let its camera drift? Check ``ns-process-data``'s
+output before training.
 
 Example::
 
     ns-process-data images --data images/east --output-dir data/east
-    ns-nerfuser-check-capture data/east data/west             # one line per capture; exit 1 if any is folded
+    ns-nerfuser-check-capture data/east data/west             # one line per capture; exit 1 if any is folded or drifted
     ns-nerfuser-check-capture data/east --write-larger-side   # also writes data/east/transforms_larger_side.json
     ns-train nerfacto --data data/east/transforms_larger_side.json
 
 On repeated structure COLMAP can pose a block of a capture's views by the wrong copy of the structure (see
 :mod:`nerfuser_ns.capture_check`); a run trained on such poses cannot be registered correctly by any method. The check
 needs views filmed in sequence (file names in the order taken; a multi-camera rig's views interleaved exposure by
-exposure are checked camera by camera) and says so when the order is no sequence.
+exposure are checked camera by camera) and says so when the order is no sequence. A camera whose vertical focal length
+COLMAP let drift from the horizontal one (views along one line, as from a car) stretches the capture's geometry: it
+is reported with what to run instead.
 """
 
 from __future__ import annotations
@@ -28,7 +31,9 @@ from nerfuser_ns.capture_check import (
     LARGER_SIDE_NAME,
     MAX_RIG_CAMERAS,
     SEQUENCE_STEP_DEG,
+    SQUARE_PIXEL_ADVICE,
     check_dataset,
+    check_dataset_intrinsics,
     dataset_file,
     write_larger_side,
 )
@@ -39,7 +44,7 @@ ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
 
 @dataclass
 class CheckCaptureCommand:
-    """Check COLMAP-posed captures (ns-process-data outputs) for folds by repeated structure."""
+    """Check COLMAP-posed captures (ns-process-data outputs) for folds by repeated structure and drifted cameras."""
 
     data: tyro.conf.Positional[list[Path]]
     """Dataset folders (or their transforms.json), one per capture."""
@@ -49,10 +54,16 @@ class CheckCaptureCommand:
     changed."""
 
     def main(self) -> int:
-        """The exit status: 0 when no capture is folded, 1 when one is (or an input is bad)."""
-        folded = False
-        checks = [(path, check_dataset(path)) for path in self.data]  # every input read before anything is written
-        for path, check in checks:
+        """The exit status: 0 when no capture is folded or drifted, 1 when one is (or an input is bad)."""
+        found = False
+        # every input read before anything is written
+        checks = [(path, check_dataset(path), check_dataset_intrinsics(path)) for path in self.data]
+        for path, check, camera in checks:
+            camera_warning = camera.warning(str(path))
+            if camera_warning is not None:
+                found = True
+                CONSOLE.print(f"[yellow]{camera_warning}[/]")
+                CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}")
             if not check.checked:
                 CONSOLE.print(f"{path}: not checked: the median turn between views in file order is "
                               f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order "
@@ -65,7 +76,7 @@ class CheckCaptureCommand:
                 CONSOLE.print(f"{path}: not folded ({check.num_views} views{rig}, median turn "
                               f"{check.median_turn_deg:.1f} deg, no turn above {FOLD_TURN_DEG:.0f} deg)")  # fmt: skip
                 continue
-            folded = True
+            found = True
             CONSOLE.print(f"[yellow]{warning}[/]")
             CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
             if self.write_larger_side:
@@ -75,7 +86,7 @@ class CheckCaptureCommand:
             else:
                 CONSOLE.print("  train on its larger side (--write-larger-side: a consistent capture by itself), or "
                               "pose it again and check again")  # fmt: skip
-        return 1 if folded else 0
+        return 1 if found else 0
 
 
 def run(command: CheckCaptureCommand) -> int:

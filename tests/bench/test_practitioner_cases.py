@@ -172,6 +172,11 @@ def test_a_case_posed_by_another_matching_shares_the_images_alone(load_script, t
     assert "room-6" in bench.training_siblings("room:6", checked)
     assert "room-6" in bench.image_siblings("room:6", seq) and "room-6" not in bench.training_siblings("room:6", seq)
     assert bench.case_options(seq) == ["--matching-method", "sequential"]
+    one_focal = bench.replace(cfg, camera_type="simple_pinhole")  # ns-process-data --camera-type: posed again too
+    assert bench.case_folder("room:6", one_focal) == "room-6-simple-pinhole"
+    assert "room-6" in bench.image_siblings("room:6", one_focal)
+    assert "room-6" not in bench.training_siblings("room:6", one_focal)
+    assert bench.case_options(one_focal) == ["--camera-type", "simple_pinhole"]
     caps = ["capture_a", "capture_b"]
     _captured(tmp_path / "room-6", caps, {"images capture_a": 80.0, "colmap capture_a": 120.0})
     case = tmp_path / "room-6-sequential"
