@@ -26,7 +26,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     colmap_tie,
     dataset_transforms,
 )
-from nerfuser_ns.capture_check import check_dataset
+from nerfuser_ns.capture_check import check_dataset, check_dataset_intrinsics
 from nerfuser_ns.files import write_text_atomic
 
 
@@ -65,9 +65,11 @@ def measure(case: str, folder: Path, width: int, height: int) -> list[dict]:
     for cap in layout.captures:
         g = colmap_tie(cap, folder)[0]
         check = check_dataset(dataset_transforms(folder, cap.name))
+        camera = check_dataset_intrinsics(dataset_transforms(folder, cap.name))
         found = sum(colmap_misposed(cap, folder).get(f, False) for f in check.suspect)
         rows.append({"case": case, "folder": str(folder), "size": f"{width}x{height}", "capture": g["capture"],
-                     "posed": g["posed_by_colmap"], "views": g["views"], "rot_err_deg": g["colmap_rot_err_deg_median"],
+                     "posed": g["posed_by_colmap"], "views": g["views"], "focal_ratio": camera.aspect,
+                     "camera_drifted": camera.drifted, "rot_err_deg": g["colmap_rot_err_deg_median"],
                      "pose_tie_rot_err_deg": g["pose_tie_rot_err_deg_median"],
                      "centre_err": g["colmap_centre_err_median"], "bend_deg": g["colmap_bend_deg"],
                      "misposed": g["pose_tie_misposed_views"], "matching": matching,
@@ -88,14 +90,17 @@ def write_report(rows: list[dict], output: Path, command: str) -> None:
              "views more than 5 deg off their true rotation after the tie fitted to the views' rotations (a part of "
              "the capture posed by the wrong copy of repeated structure). *Check*: the suspect views "
              "`ns-nerfuser-check-capture` finds from the poses alone (no truth; *not checked* where the file order is "
-             "no filmed sequence), and how many of them are misposed.", "",
-             "| case | image size | matching | capture | posed | rot err (deg) | pose tie (deg) | centre err | "
+             "no filmed sequence), and how many of them are misposed. *fy/fx*: COLMAP's vertical over horizontal focal "
+             "length (1 for square pixels; marked *drifted* beyond 1 +- 0.02, as `ns-nerfuser-check-capture` reports "
+             "it).", "",
+             "| case | image size | matching | capture | posed | fy/fx | rot err (deg) | pose tie (deg) | centre err | "
              "bend (deg) | misposed | check: suspect (misposed) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for r in rows:
         check = r["check"] if isinstance(r["check"], str) else f"{r['check']} ({r['check_misposed']})"
+        ratio = f"{r['focal_ratio']:.3f}" + (" drifted" if r["camera_drifted"] else "")
         lines.append(f"| {r['case']} | {r['size']} | {r['matching']} | {r['capture']} | {r['posed']}/{r['views']} | "
-                     f"{r['rot_err_deg']:.3f} | {r['pose_tie_rot_err_deg']:.3f} | {r['centre_err']:.4f} | "
+                     f"{ratio} | {r['rot_err_deg']:.3f} | {r['pose_tie_rot_err_deg']:.3f} | {r['centre_err']:.4f} | "
                      f"{r['bend_deg']:.2f} | {r['misposed']} | {check} |")  # fmt: skip
     write_text_atomic(output, "\n".join(lines) + "\n")
     write_text_atomic(output.with_suffix(".json"), json.dumps(rows, indent=2) + "\n")

@@ -19,13 +19,15 @@ def quality(load_script):
     return load_script("colmap_quality")
 
 
-def _write_dataset(case_dir, capture, poses, order):
-    """transforms.json as ns-process-data names the frames (frame_00001.png ... in the inputs' sorted order)."""
+def _write_dataset(case_dir, capture, poses, order, fl_y=50.0):
+    """transforms.json as ns-process-data names the frames (frame_00001.png ... in the inputs' sorted order), its
+    camera with a horizontal focal length of 50 px."""
     frames = [{"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": poses[n].tolist()}
               for n, i in enumerate(order)]  # fmt: skip
     folder = case_dir / "datasets" / capture
     folder.mkdir(parents=True)
-    (folder / "transforms.json").write_text(json.dumps({"frames": frames}))
+    camera = {"fl_x": 50.0, "fl_y": fl_y, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48}
+    (folder / "transforms.json").write_text(json.dumps({**camera, "frames": frames}))
 
 
 def test_exact_and_bent_reconstructions(quality, tmp_path):
@@ -40,12 +42,13 @@ def test_exact_and_bent_reconstructions(quality, tmp_path):
     turn = sim3.compose(sim3.make_sim3(np.eye(3), middle), sim3.make_sim3(sim3.so3_exp(np.radians([0, 0, 4.0]))),
                         sim3.make_sim3(np.eye(3), -middle))  # fmt: skip
     true[len(true) // 2 :] = sim3.transform_poses(turn, true[len(true) // 2 :])
-    _write_dataset(tmp_path, bent_cap.name, true, np.arange(len(true)))
+    _write_dataset(tmp_path, bent_cap.name, true, np.arange(len(true)), fl_y=55.0)  # its camera drifted too
     rows = quality.measure("street:3", tmp_path, 64, 48)
     exact, bent = rows
     assert (exact["posed"], exact["views"]) == (50, exact_cap.num_views) and exact["size"] == "64x48"
     assert exact["rot_err_deg"] < 1e-6 and exact["centre_err"] < 1e-6 and exact["bend_deg"] < 1e-6
     assert exact["pose_tie_rot_err_deg"] < 1e-6
+    assert (exact["focal_ratio"], exact["camera_drifted"]) == (1.0, False) and bent["camera_drifted"]
     assert bent["bend_deg"] == pytest.approx(4.0, abs=0.3) and bent["rot_err_deg"] > 0.5
     assert bent["pose_tie_rot_err_deg"] > 0.5  # no tie of the views' rotations undoes a bend either
     assert exact["misposed"] == 0 and bent["misposed"] == 0  # a 4 deg bend splits the error, no view is 5 deg off
@@ -53,6 +56,7 @@ def test_exact_and_bent_reconstructions(quality, tmp_path):
     out.parent.mkdir()
     quality.write_report(rows, out, "python scripts/colmap_quality.py ...")
     assert "| street:3 | 64x48 | exhaustive | capture_0 | 50/" in out.read_text()
+    assert "| 1.100 drifted |" in out.read_text()
     assert json.loads(out.with_suffix(".json").read_text()) == rows
 
 
