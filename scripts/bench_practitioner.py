@@ -282,9 +282,12 @@ def stage_colmap(
     layout, case_dir: Path, matching_method: str = "exhaustive", camera_type: str = "perspective"
 ) -> None:
     """Pose each capture with ``ns-process-data images`` (COLMAP, CPU SIFT); ``colmap_matching.txt`` names the
-    matching (cases without it were posed by exhaustive matching); ``camera_type`` is ns-process-data's."""
+    matching (cases without it were posed by exhaustive matching), ``colmap_camera.txt`` ns-process-data's
+    ``--camera-type`` (cases without it: perspective, its default)."""
     if not (case_dir / "colmap_matching.txt").is_file():
         write_text_atomic(case_dir / "colmap_matching.txt", matching_method + "\n")
+    if not (case_dir / "colmap_camera.txt").is_file():
+        write_text_atomic(case_dir / "colmap_camera.txt", camera_type + "\n")
     for cap in layout.captures:
         out = dataset_transforms(case_dir, cap.name)
         if out.is_file():
@@ -682,6 +685,8 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     record["captures_from"] = captures_from(case_dir)
     matching = case_dir / "colmap_matching.txt"
     record["colmap_matching"] = matching.read_text().strip() if matching.is_file() else "exhaustive"
+    camera = case_dir / "colmap_camera.txt"
+    record["colmap_camera"] = camera.read_text().strip() if camera.is_file() else "perspective"
     check = case_dir / "capture_check.json"
     record["capture_check"] = json.loads(check.read_text()) if check.is_file() else None
     return record
@@ -744,14 +749,15 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
              "NeRF's frame by the ground truth; the blend uses the estimated registration.", ""]  # fmt: skip
     if cfg.note:
         lines += [cfg.note, ""]
-    shared = [(r["case"], r["captures_from"], r.get("colmap_matching", "exhaustive")) for r in records
-              if r.get("captures_from")]  # fmt: skip
+    shared = [(r["case"], r["captures_from"], r.get("colmap_matching", "exhaustive"),
+               r.get("colmap_camera", "perspective")) for r in records if r.get("captures_from")]  # fmt: skip
     if shared:
         lines += ["Shared inputs: " + "; ".join(
             f"{c} uses the images, COLMAP datasets and test views of `{src}` (the same case trained otherwise, copied "
-            "before its first stage), so the pair differs in training alone" if m == "exhaustive" else
-            f"{c} uses the images and test views of `{src}` (copied before its first stage) and its own COLMAP "
-            f"datasets ({m} matching), so the pair differs from COLMAP on" for c, src, m in shared) + ".", ""]
+            "before its first stage), so the pair differs in training alone" if (m, k) == ("exhaustive", "perspective")
+            else f"{c} uses the images and test views of `{src}` (copied before its first stage) and its own COLMAP "
+            f"datasets ({m} matching, ns-process-data --camera-type {k}), so the pair differs from COLMAP on"
+            for c, src, m, k in shared) + ".", ""]
     for r in records:
         if r.get("capture_check"):
             parts = [f"{cap}: " + ("not checked (file order no sequence)" if not c["checked"] else
@@ -766,7 +772,10 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for r in records:
         colmap = r["captures"]
-        col = ", ".join(f"{c['colmap_rot_err_deg_median']:.3f}" for c in colmap)
+        # COLMAP's vertical over horizontal focal length, where the record has it (records before it did not)
+        ratio = "" if "colmap_focal_ratio" not in colmap[0] else " (fy/fx " + ", ".join(
+            f"{c['colmap_focal_ratio']:.3f}" for c in colmap) + ")"  # fmt: skip
+        col = ", ".join(f"{c['colmap_rot_err_deg_median']:.3f}" for c in colmap) + ratio
         cen = ", ".join(f"{c['colmap_centre_err_median']:.4f}" for c in colmap)
         posed = ", ".join(_posed_cell(c) for c in colmap)
         bend = ", ".join(f"{c['colmap_bend_deg']:.2f}" for c in colmap)

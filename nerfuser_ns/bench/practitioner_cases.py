@@ -16,7 +16,7 @@ import numpy as np
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
-from nerfuser_ns.capture_check import LARGER_SIDE_NAME
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset_intrinsics
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration.record import write_registration
 
@@ -307,6 +307,7 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
         "colmap_rot_err_deg_median": rot_err,
         "colmap_centre_err_median": centre_err,
         "colmap_bend_deg": colmap_bend_deg(stored, true, idx, world_scale),
+        "colmap_focal_ratio": check_dataset_intrinsics(dataset_transforms(case_dir, cap.name)).aspect,
         "pose_tie_rot_err_deg_median": pose_rot_err,
         "pose_tie_misposed_views": sum(misposed.values()),
     }
