@@ -278,6 +278,11 @@ def check_dataset(path: Path | str) -> FoldCheck:
     return fold_check(c2w, names)
 
 
+def aspect_drifted(aspect: float) -> bool:
+    """Whether a camera's fy/fx is more than :data:`MAX_ASPECT_DEVIATION` from 1 (square pixels)."""
+    return abs(aspect - 1.0) > MAX_ASPECT_DEVIATION
+
+
 @dataclass(frozen=True)
 class IntrinsicsCheck:
     """What :func:`intrinsics_check` found in one capture's camera."""
@@ -292,7 +297,7 @@ class IntrinsicsCheck:
 
     @property
     def drifted(self) -> bool:
-        return abs(self.aspect - 1.0) > MAX_ASPECT_DEVIATION
+        return aspect_drifted(self.aspect)
 
     def warning(self, subject: str) -> str | None:
         """One line for a drifted camera naming ``subject`` (a run or a dataset); None otherwise."""

@@ -26,7 +26,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     colmap_tie,
     dataset_transforms,
 )
-from nerfuser_ns.capture_check import check_dataset, check_dataset_intrinsics
+from nerfuser_ns.capture_check import aspect_drifted, check_dataset
 from nerfuser_ns.files import write_text_atomic
 
 
@@ -65,11 +65,11 @@ def measure(case: str, folder: Path, width: int, height: int) -> list[dict]:
     for cap in layout.captures:
         g = colmap_tie(cap, folder)[0]
         check = check_dataset(dataset_transforms(folder, cap.name))
-        camera = check_dataset_intrinsics(dataset_transforms(folder, cap.name))
         found = sum(colmap_misposed(cap, folder).get(f, False) for f in check.suspect)
         rows.append({"case": case, "folder": str(folder), "size": f"{width}x{height}", "capture": g["capture"],
-                     "posed": g["posed_by_colmap"], "views": g["views"], "focal_ratio": camera.aspect,
-                     "camera_drifted": camera.drifted, "rot_err_deg": g["colmap_rot_err_deg_median"],
+                     "posed": g["posed_by_colmap"], "views": g["views"], "focal_ratio": g["colmap_focal_ratio"],
+                     "camera_drifted": aspect_drifted(g["colmap_focal_ratio"]),
+                     "rot_err_deg": g["colmap_rot_err_deg_median"],
                      "pose_tie_rot_err_deg": g["pose_tie_rot_err_deg_median"],
                      "centre_err": g["colmap_centre_err_median"], "bend_deg": g["colmap_bend_deg"],
                      "misposed": g["pose_tie_misposed_views"], "matching": matching,

@@ -274,6 +274,9 @@ def test_cli_reports_a_drifted_camera_with_what_to_run(room_poses, tmp_path, cap
     out = capsys.readouterr().out
     assert f"{drifted}: COLMAP's camera looks drifted" in out and "--camera-type simple_pinhole" in out
     assert f"{clean}: COLMAP's camera" not in out and "not folded" in out  # the fold check still runs on both
+    lines = {line.split(":")[0]: line for line in out.splitlines() if "not folded" in line}
+    assert "fy/fx 1.000 (square pixels)" in lines[str(clean)]
+    assert "but its camera drifted (fy/fx 1.200" in lines[str(drifted)]
 
 
 class _TrainedRunWithCamera(_TrainedRun):

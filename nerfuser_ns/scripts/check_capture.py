@@ -64,17 +64,21 @@ class CheckCaptureCommand:
                 found = True
                 CONSOLE.print(f"[yellow]{camera_warning}[/]")
                 CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}")
+            # the fold verdict's line also carries the camera's, so that "not folded" never reads as "fine"
+            camera_note = (f"; but its camera drifted (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
+                           else f"; camera fy/fx {camera.aspect:.3f} (square pixels)")  # fmt: skip
             if not check.checked:
-                CONSOLE.print(f"{path}: not checked: the median turn between views in file order is "
+                CONSOLE.print(f"{path}: not checked for folds: the median turn between views in file order is "
                               f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order "
                               f"is not a filmed sequence, nor a rig of up to {MAX_RIG_CAMERAS} cameras "
-                              "interleaved")  # fmt: skip
+                              f"interleaved{camera_note}")  # fmt: skip
                 continue
             warning = check.warning(str(path))
             if warning is None:
                 rig = f", each of {check.rig_cameras} rig cameras" if check.rig_cameras > 1 else ""
                 CONSOLE.print(f"{path}: not folded ({check.num_views} views{rig}, median turn "
-                              f"{check.median_turn_deg:.1f} deg, no turn above {FOLD_TURN_DEG:.0f} deg)")  # fmt: skip
+                              f"{check.median_turn_deg:.1f} deg, no turn above {FOLD_TURN_DEG:.0f} deg)"
+                              f"{camera_note}")  # fmt: skip
                 continue
             found = True
             CONSOLE.print(f"[yellow]{warning}[/]")
