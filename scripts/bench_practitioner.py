@@ -292,6 +292,9 @@ def stage_colmap(
         out = dataset_transforms(case_dir, cap.name)
         if out.is_file():
             continue
+        if not images_done(case_dir, cap.name).is_file():
+            raise SystemExit(f"{images_done(case_dir, cap.name).parent}: no complete image folder; run the scene "
+                             "stage first (--stages scene colmap: it also copies a sibling folder's images)")
         cmd = [str(BIN / "ns-process-data"), "images", "--data", str(images_done(case_dir, cap.name).parent),
                "--output-dir", str(out.parent), "--no-gpu", "--matching-method", matching_method,
                "--num-downscales", "0"]  # fmt: skip
