@@ -1092,7 +1092,7 @@ def main(cfg: BenchPractitioner) -> None:
                                             parts=("images", "test"))  # fmt: skip
                     if source is not None:
                         CONSOLE.print(f"{case}: images and test views copied from {source} (the same case posed by "
-                                      "another COLMAP matching; --no-share-captures to render them anew)")
+                                      "another COLMAP matching or camera; --no-share-captures to render them anew)")
                 stage_scene(layout, case_dir)
             if "colmap" in cfg.stages:
                 stage_colmap(layout, case_dir, cfg.matching_method, cfg.camera_type)
