@@ -4,7 +4,7 @@ output before training.
 Example::
 
     ns-process-data images --data images/east --output-dir data/east
-    ns-nerfuser-check-capture data/east data/west             # one line per capture; exit 1 if any is folded or drifted
+    ns-nerfuser-check-capture data/east data/west             # a verdict per capture; exit 1 if folded or drifted
     ns-nerfuser-check-capture data/east --write-larger-side   # also writes data/east/transforms_larger_side.json
     ns-train nerfacto --data data/east/transforms_larger_side.json
 
