@@ -62,6 +62,8 @@ def measure(case: str, folder: Path, width: int, height: int) -> list[dict]:
     rows = []
     matching_file = folder / "colmap_matching.txt"
     matching = matching_file.read_text().strip() if matching_file.is_file() else "exhaustive"
+    camera_file = folder / "colmap_camera.txt"  # ns-process-data's --camera-type (bench_practitioner writes it)
+    camera_type = camera_file.read_text().strip() if camera_file.is_file() else "perspective"
     for cap in layout.captures:
         g = colmap_tie(cap, folder)[0]
         check = check_dataset(dataset_transforms(folder, cap.name))
@@ -72,7 +74,7 @@ def measure(case: str, folder: Path, width: int, height: int) -> list[dict]:
                      "rot_err_deg": g["colmap_rot_err_deg_median"],
                      "pose_tie_rot_err_deg": g["pose_tie_rot_err_deg_median"],
                      "centre_err": g["colmap_centre_err_median"], "bend_deg": g["colmap_bend_deg"],
-                     "misposed": g["pose_tie_misposed_views"], "matching": matching,
+                     "misposed": g["pose_tie_misposed_views"], "matching": matching, "camera_type": camera_type,
                      "check": "not checked" if not check.checked else check.suspect_views,
                      "check_misposed": found})  # fmt: skip
     return rows
@@ -90,16 +92,18 @@ def write_report(rows: list[dict], output: Path, command: str) -> None:
              "views more than 5 deg off their true rotation after the tie fitted to the views' rotations (a part of "
              "the capture posed by the wrong copy of repeated structure). *Check*: the suspect views "
              "`ns-nerfuser-check-capture` finds from the poses alone (no truth; *not checked* where the file order is "
-             "no filmed sequence), and how many of them are misposed. *fy/fx*: COLMAP's vertical over horizontal focal "
+             "no filmed sequence), and how many of them are misposed. *Camera*: `ns-process-data --camera-type` "
+             "(perspective, its default: COLMAP's OPENCV model). *fy/fx*: COLMAP's vertical over horizontal focal "
              "length (1 for square pixels; marked *drifted* beyond 1 +- 0.02, as `ns-nerfuser-check-capture` reports "
              "it).", "",
-             "| case | image size | matching | capture | posed | fy/fx | rot err (deg) | pose tie (deg) | centre err | "
-             "bend (deg) | misposed | check: suspect (misposed) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+             "| case | image size | matching | camera | capture | posed | fy/fx | rot err (deg) | pose tie (deg) | "
+             "centre err | bend (deg) | misposed | check: suspect (misposed) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for r in rows:
         check = r["check"] if isinstance(r["check"], str) else f"{r['check']} ({r['check_misposed']})"
         ratio = f"{r['focal_ratio']:.3f}" + (" drifted" if r["camera_drifted"] else "")
-        lines.append(f"| {r['case']} | {r['size']} | {r['matching']} | {r['capture']} | {r['posed']}/{r['views']} | "
+        lines.append(f"| {r['case']} | {r['size']} | {r['matching']} | {r['camera_type']} | {r['capture']} | "
+                     f"{r['posed']}/{r['views']} | "
                      f"{ratio} | {r['rot_err_deg']:.3f} | {r['pose_tie_rot_err_deg']:.3f} | {r['centre_err']:.4f} | "
                      f"{r['bend_deg']:.2f} | {r['misposed']} | {check} |")  # fmt: skip
     write_text_atomic(output, "\n".join(lines) + "\n")

@@ -55,7 +55,9 @@ def test_exact_and_bent_reconstructions(quality, tmp_path):
     out = tmp_path / "report" / "quality.md"
     out.parent.mkdir()
     quality.write_report(rows, out, "python scripts/colmap_quality.py ...")
-    assert "| street:3 | 64x48 | exhaustive | capture_0 | 50/" in out.read_text()
+    assert "| street:3 | 64x48 | exhaustive | perspective | capture_0 | 50/" in out.read_text()  # no colmap_camera.txt
+    (tmp_path / "colmap_camera.txt").write_text("simple_pinhole\n")
+    assert all(r["camera_type"] == "simple_pinhole" for r in quality.measure("street:3", tmp_path, 64, 48))
     assert "| 1.100 drifted |" in out.read_text()
     assert json.loads(out.with_suffix(".json").read_text()) == rows
 
