@@ -69,7 +69,8 @@ COLMAP recovers their ratio to well within it where the views fix it (within 0.0
 captures); drifted drive captures showed 1.07 to 1.41."""
 SQUARE_PIXEL_ADVICE = (
     "pose it again with one focal length: ns-process-data images ... --camera-type simple_pinhole "
-    "(images without lens distortion), and check again"
+    "(images without lens distortion; with distortion, COLMAP's SIMPLE_RADIAL camera, then ns-process-data "
+    "--skip-colmap: nerfuser_ns's docs/your_own_captures.md), and check again"
 )
 """What to do about a capture whose intrinsics drifted."""
 LARGER_SIDE_NAME = "transforms_larger_side.json"
