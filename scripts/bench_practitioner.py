@@ -56,6 +56,8 @@ from nerfuser_ns.bench.practitioner_cases import (
     captures_from,
     case_layout,
     case_times,
+    colmap_camera,
+    colmap_matching,
     dataset_transforms,
     fused_appearance_matching,
     fused_config,
@@ -686,10 +688,8 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     commit = case_dir / "register_commit.txt"
     record["registered_at_commit"] = commit.read_text().strip() if commit.is_file() else None
     record["captures_from"] = captures_from(case_dir)
-    matching = case_dir / "colmap_matching.txt"
-    record["colmap_matching"] = matching.read_text().strip() if matching.is_file() else "exhaustive"
-    camera = case_dir / "colmap_camera.txt"
-    record["colmap_camera"] = camera.read_text().strip() if camera.is_file() else "perspective"
+    record["colmap_matching"] = colmap_matching(case_dir)
+    record["colmap_camera"] = colmap_camera(case_dir)
     check = case_dir / "capture_check.json"
     record["capture_check"] = json.loads(check.read_text()) if check.is_file() else None
     return record

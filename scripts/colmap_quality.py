@@ -22,6 +22,8 @@ import tyro
 
 from nerfuser_ns.bench.practitioner_cases import (
     case_layout,
+    colmap_camera,
+    colmap_matching,
     colmap_misposed,
     colmap_tie,
     dataset_transforms,
@@ -60,10 +62,7 @@ def measure(case: str, folder: Path, width: int, height: int) -> list[dict]:
         raise SystemExit(f"{folder}: no datasets/ (run bench_practitioner.py --stages scene colmap for {case} first)")
     layout = case_layout(case, width, height)
     rows = []
-    matching_file = folder / "colmap_matching.txt"
-    matching = matching_file.read_text().strip() if matching_file.is_file() else "exhaustive"
-    camera_file = folder / "colmap_camera.txt"  # ns-process-data's --camera-type (bench_practitioner writes it)
-    camera_type = camera_file.read_text().strip() if camera_file.is_file() else "perspective"
+    matching, camera_type = colmap_matching(folder), colmap_camera(folder)
     for cap in layout.captures:
         g = colmap_tie(cap, folder)[0]
         check = check_dataset(dataset_transforms(folder, cap.name))

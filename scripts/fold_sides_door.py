@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from nerfuser_ns.bench.practitioner_cases import case_layout, dataset_transforms, frame_index
+from nerfuser_ns.bench.practitioner_cases import case_layout, colmap_matching, dataset_transforms, frame_index
 from nerfuser_ns.capture_check import check_dataset
 from nerfuser_ns.files import write_text_atomic
 
@@ -50,14 +50,14 @@ def measure(spec: str) -> list[dict]:
     if not case.startswith("room:") or not folder:
         raise SystemExit(f"--cases {spec!r}: expected room:SEED=CASE_DIR")
     folder_path = Path(folder)
-    matching = folder_path / "colmap_matching.txt"
+    matching = colmap_matching(folder_path)
     rows = []
     for cap in case_layout(case).captures:
         check = check_dataset(dataset_transforms(folder_path, cap.name))
         suspect = {frame_index(s) for s in check.suspect}
         door = [i for i in range(cap.num_views) if sees(cap.c2w_world[i], cap.intrinsics, DOOR_CENTRE)]
         rows.append({"case": case, "folder": folder, "capture": cap.name,
-                     "matching": matching.read_text().strip() if matching.is_file() else "exhaustive",
+                     "matching": matching,
                      "suspect": len(suspect), "door_views": len(door),
                      "door_views_suspect": sum(1 for i in door if i in suspect)})  # fmt: skip
     return rows

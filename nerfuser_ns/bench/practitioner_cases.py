@@ -142,6 +142,20 @@ def images_done(case_dir: Path, capture: str) -> Path:
     return case_dir / "images" / capture / ".done"
 
 
+def colmap_matching(case_dir: Path) -> str:
+    """The COLMAP matching the ``colmap`` stage posed the case with (``colmap_matching.txt``; exhaustive for cases
+    posed before the file existed)."""
+    file = case_dir / "colmap_matching.txt"
+    return file.read_text().strip() if file.is_file() else "exhaustive"
+
+
+def colmap_camera(case_dir: Path) -> str:
+    """``ns-process-data --camera-type`` of the ``colmap`` stage (``colmap_camera.txt``; perspective, its default, for
+    cases posed before the file existed)."""
+    file = case_dir / "colmap_camera.txt"
+    return file.read_text().strip() if file.is_file() else "perspective"
+
+
 def dataset_transforms(case_dir: Path, capture: str) -> Path:
     """A capture's COLMAP dataset (``ns-process-data``'s transforms.json): the ``colmap`` stage's output."""
     return case_dir / "datasets" / capture / "transforms.json"
