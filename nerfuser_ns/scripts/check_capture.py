@@ -64,7 +64,8 @@ class CheckCaptureCommand:
                 found = True
                 CONSOLE.print(f"[yellow]{camera_warning}[/]")
                 CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}")
-            # the fold verdict's line also carries the camera's, so that "not folded" never reads as "fine"
+            # every fold verdict also carries the camera's, so that "not folded" never reads as "fine" and a
+            # folded capture's camera is not left unsaid
             camera_note = (f"; but its camera drifted (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
                            else f"; camera fy/fx {camera.aspect:.3f} (square pixels)")  # fmt: skip
             if not check.checked:
@@ -83,6 +84,8 @@ class CheckCaptureCommand:
             found = True
             CONSOLE.print(f"[yellow]{warning}[/]")
             CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
+            CONSOLE.print(f"  its camera drifted too (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
+                          else f"  camera fy/fx {camera.aspect:.3f} (square pixels)")  # fmt: skip
             if self.write_larger_side:
                 out = write_larger_side(path, check, dataset_file(path).parent / LARGER_SIDE_NAME)
                 CONSOLE.print(f"  wrote {out} ({check.num_views - check.suspect_views} views): train with "
