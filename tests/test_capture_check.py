@@ -202,7 +202,7 @@ def test_cli_reports_each_capture_and_exits_1_on_a_fold(room_poses, tmp_path, ca
     drifted_fold = _write_dataset(tmp_path / "north", _fold(room_poses), _names(64), {**SQUARE, "fl_y": 60.0})
     assert cli.run(cli.CheckCaptureCommand([drifted_fold])) == 1
     out = capsys.readouterr().out
-    assert "looks folded" in out and "camera looks drifted" in out and "its camera drifted too (fy/fx 1.200" in out
+    assert "looks folded" in out and "camera looks drifted" in out and "  its camera drifted (fy/fx 1.200" in out
     assert (folded / LARGER_SIDE_NAME).is_file() and not (clean / LARGER_SIDE_NAME).exists()
 
 

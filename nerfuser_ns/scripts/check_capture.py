@@ -66,8 +66,9 @@ class CheckCaptureCommand:
                 CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}")
             # every fold verdict also carries the camera's, so that "not folded" never reads as "fine" and a
             # folded capture's camera is not left unsaid
-            camera_note = (f"; but its camera drifted (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
-                           else f"; camera fy/fx {camera.aspect:.3f} (square pixels)")  # fmt: skip
+            camera_verdict = (f"its camera drifted (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
+                              else f"camera fy/fx {camera.aspect:.3f} (square pixels)")  # fmt: skip
+            camera_note = f"; {'but ' if camera.drifted else ''}{camera_verdict}"
             if not check.checked:
                 CONSOLE.print(f"{path}: not checked for folds: the median turn between views in file order is "
                               f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order "
@@ -84,8 +85,7 @@ class CheckCaptureCommand:
             found = True
             CONSOLE.print(f"[yellow]{warning}[/]")
             CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
-            CONSOLE.print(f"  its camera drifted too (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
-                          else f"  camera fy/fx {camera.aspect:.3f} (square pixels)")  # fmt: skip
+            CONSOLE.print(f"  {camera_verdict}")
             if self.write_larger_side:
                 out = write_larger_side(path, check, dataset_file(path).parent / LARGER_SIDE_NAME)
                 CONSOLE.print(f"  wrote {out} ({check.num_views - check.suspect_views} views): train with "
