@@ -19,7 +19,7 @@ from pathlib import Path
 
 import tyro
 
-from nerfuser_ns.bench.practitioner_cases import summarise
+from nerfuser_ns.bench.practitioner_cases import BLEND_COLUMNS, blend_gains, summarise
 from nerfuser_ns.files import write_text_atomic
 
 
@@ -92,12 +92,23 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
     records = [r for r, _ in rows]
     summary = summarise(records)
     lines += ["", "Per layout:", ""]
-    for layout in sorted({r["spec"].rsplit(":", 1)[0] for r in records}):
+    layouts = sorted({r["spec"].rsplit(":", 1)[0] for r in records})
+    for layout in layouts:
         lines.append("- " + summarise([r for r in records if r["spec"].startswith(layout + ":")]).line(f"{layout}: "))
     lines += ["", summarise(records, "errors_optimized").line("Against the camera-optimised truth, ")]
     for key, truth in (("errors_pose", "pose"), ("errors_content", "content")):
         if any(r["registration"].get(key) for r in records):
             lines += ["", summarise(records, key).line(f"Against the {truth} truth (the cases scored with it), ")]
+    gains = {layout: blend_gains([r for r in records if r["spec"].startswith(layout + ":")]) for layout in layouts}
+    columns = [(k, name) for k, name in BLEND_COLUMNS if any(k in g for g in gains.values())]
+    lines += ["", "Blend methods per layout (PSNR minus IDW-Sample's, dB: median (lowest to highest) over the cases "
+              "registered without a failure, and the cases where the method scored highest):", "",
+              "| layout | " + " | ".join(name for _, name in columns) + " |", "|" + " --- |" * (len(columns) + 1)]
+    for layout, g in gains.items():
+        if g:
+            cells = ["-" if k not in g else f"best {g[k].best}/{g[k].cases}" if k == "idw_sample" else g[k].cell()
+                     for k, _ in columns]  # fmt: skip
+            lines.append(f"| {layout} | " + " | ".join(cells) + " |")
     blends = summary.idw_sample_over_nearest
     lines += ["", f"IDW-Sample >= Nearest on {sum(blends)} of {len(blends)} cases with a blend.", "",
               "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok else 'NOT met'}"

@@ -265,6 +265,39 @@ def summarise(records: list[dict], errors: str = "errors") -> Summary:
     return Summary(len(rows), len(scored), success, median, blends)
 
 
+@dataclass
+class BlendGain:
+    """One blend method against a baseline method over the cases scored with both (PSNR, dB)."""
+
+    cases: int
+    median: float
+    low: float
+    high: float
+    best: int
+    """Cases where this method scored highest of the blend methods the case was scored with (the reference NeRF
+    alone, ``nerf``, left out; a tie counts for each)."""
+
+    def cell(self) -> str:
+        return f"{self.median:+.2f} ({self.low:+.2f} to {self.high:+.2f}); best {self.best}/{self.cases}"
+
+
+def blend_gains(records: list[dict], baseline: str = "idw_sample") -> dict[str, BlendGain]:
+    """Per blend method of :data:`BLEND_COLUMNS` (but ``nerf``): its PSNR minus ``baseline``'s over the case records
+    with a blend and a registration without a failure (a misregistered blend says nothing of the method)."""
+    rows = [r["blend_psnr"] for r in records if r.get("blend_psnr") and r["registration"].get("errors")
+            and not any(e["failure"] for e in r["registration"]["errors"])]  # fmt: skip
+    methods = [k for k, _ in BLEND_COLUMNS if k != "nerf"]
+    out = {}
+    for m in methods:
+        scored = [b for b in rows if b.get(m) is not None and b.get(baseline) is not None]
+        if not scored:
+            continue
+        gains = np.array([b[m] - b[baseline] for b in scored])
+        best = sum(b[m] >= max(b[k] for k in methods if b.get(k) is not None) for b in scored)
+        out[m] = BlendGain(len(scored), float(np.median(gains)), float(gains.min()), float(gains.max()), best)
+    return out
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # Ground truth
 

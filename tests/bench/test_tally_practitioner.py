@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from nerfuser_ns.bench.practitioner_cases import summarise
+from nerfuser_ns.bench.practitioner_cases import blend_gains, summarise
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +73,9 @@ def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_
     assert ("Against the content truth (the cases scored with it), 1 case(s), 1 registered NeRF(s): median r_err "
             "0.0200" in text)  # fmt: skip
     assert "[bench_practitioner_b](bench_practitioner_b.md)" in text
+    assert "| layout | Nearest | IDW-Sample |" in text
+    assert "| street | -1.00 (-1.00 to -1.00); best 0/1 | best 1/1 |" in text
+    assert "| room |" not in text  # its one case failed: no blend method is judged on it
     assert text.rstrip().endswith("3 case(s), 3 registered NeRF(s): median r_err 0.0800 deg, t_err 0.00800, "
                                   "s_err 0.00080; success rate 0.67.")  # fmt: skip
 
@@ -84,3 +87,20 @@ def test_tally_refuses_a_file_that_holds_no_case_records(tally, tmp_path):
         tally.collect([bad])
     with pytest.raises(SystemExit, match="missing.json: not a readable"):
         tally.collect([tmp_path / "missing.json"])
+
+
+def test_blend_gains_against_idw_sample_leave_out_misregistered_and_unscored_cases():
+    records = [_record("street-1", 0.1), _record("street-2", 0.1), _record("street-3", 9.0, failure=True),
+               _record("street-4", None)]  # fmt: skip
+    records[0]["blend_psnr"].update(idw_2d=21.5, coverage=22.0)
+    records[1]["blend_psnr"].update(idw_2d=20.0, coverage=20.5, coverage_3d=22.0)
+    records[2]["blend_psnr"].update(idw_2d=30.0, coverage=30.0)  # a failed registration: left out
+    gains = blend_gains(records)
+    assert set(gains) == {"nearest", "idw_2d", "idw_sample", "coverage", "coverage_3d"}
+    cov = gains["coverage"]
+    assert (cov.cases, cov.median, cov.low, cov.high, cov.best) == (2, pytest.approx(0.25), pytest.approx(-0.5),
+                                                                   pytest.approx(1.0), 1)  # fmt: skip
+    assert (gains["coverage_3d"].cases, gains["coverage_3d"].best) == (1, 1)
+    assert gains["idw_sample"].median == 0.0 and gains["idw_sample"].best == 0
+    assert gains["nearest"].cell() == "-1.00 (-1.00 to -1.00); best 0/2"
+    assert blend_gains([_record("room-1", 170.0, failure=True)]) == {}
