@@ -92,14 +92,15 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
     records = [r for r, _ in rows]
     summary = summarise(records)
     lines += ["", "Per layout:", ""]
-    layouts = sorted({r["spec"].rsplit(":", 1)[0] for r in records})
-    for layout in layouts:
-        lines.append("- " + summarise([r for r in records if r["spec"].startswith(layout + ":")]).line(f"{layout}: "))
+    by_layout = {layout: [r for r in records if r["spec"].startswith(layout + ":")]
+                 for layout in sorted({r["spec"].rsplit(":", 1)[0] for r in records})}  # fmt: skip
+    for layout, cases in by_layout.items():
+        lines.append("- " + summarise(cases).line(f"{layout}: "))
     lines += ["", summarise(records, "errors_optimized").line("Against the camera-optimised truth, ")]
     for key, truth in (("errors_pose", "pose"), ("errors_content", "content")):
         if any(r["registration"].get(key) for r in records):
             lines += ["", summarise(records, key).line(f"Against the {truth} truth (the cases scored with it), ")]
-    gains = {layout: blend_gains([r for r in records if r["spec"].startswith(layout + ":")]) for layout in layouts}
+    gains = {layout: blend_gains(cases) for layout, cases in by_layout.items()}
     columns = [(k, name) for k, name in BLEND_COLUMNS if any(k in g for g in gains.values())]
     lines += ["", "Blend methods per layout (PSNR minus IDW-Sample's, dB: median (lowest to highest) over the cases "
               "registered without a failure, and the cases where the method scored highest):", "",
