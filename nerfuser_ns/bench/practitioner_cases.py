@@ -287,13 +287,16 @@ def blend_gains(records: list[dict], baseline: str = "idw_sample") -> dict[str, 
     rows = [r["blend_psnr"] for r in records if r.get("blend_psnr") and r["registration"].get("errors")
             and not any(e["failure"] for e in r["registration"]["errors"])]  # fmt: skip
     methods = [k for k, _ in BLEND_COLUMNS if k != "nerf"]
+    # each case's highest score, once (None: the case scored none of them, so no method below pairs with it)
+    tops = [max((b[k] for k in methods if b.get(k) is not None), default=None) for b in rows]
     out = {}
     for m in methods:
-        scored = [b for b in rows if b.get(m) is not None and b.get(baseline) is not None]
+        scored = [(b, top) for b, top in zip(rows, tops, strict=True) if b.get(m) is not None
+                  and b.get(baseline) is not None]  # fmt: skip
         if not scored:
             continue
-        gains = np.array([b[m] - b[baseline] for b in scored])
-        best = sum(b[m] >= max(b[k] for k in methods if b.get(k) is not None) for b in scored)
+        gains = np.array([b[m] - b[baseline] for b, _ in scored])
+        best = sum(b[m] >= top for b, top in scored)
         out[m] = BlendGain(len(scored), float(np.median(gains)), float(gains.min()), float(gains.max()), best)
     return out
 
