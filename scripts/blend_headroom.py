@@ -157,6 +157,12 @@ def score_case(case_dir: Path, gammas: list[float], max_views: int | None, conso
     errors = (own - target[None]).square().mean(-1)  # [2, V, H, W]
     best = errors.argmin(0)
     rows["ceiling: per-pixel oracle"] = score(torch.where((best == 0)[..., None], own[0], own[1]))
+    per_view = {m: metrics.per_image_psnr(torch.stack(model_all[k]), target).tolist()
+                for m, k in zip(MODEL_METHODS, keys, strict=True)}  # fmt: skip
+    per_view["nerf 0 alone"], per_view["nerf 1 alone"] = (metrics.per_image_psnr(o, target).tolist() for o in own)
+    per_view["ceiling: best weight per view"] = metrics.per_image_psnr(a * own[0] + (1 - a) * own[1], target).tolist()
+    centres = cameras.camera_to_worlds[:, :3, 3]
+    camera_distances = (centres[:, None] - model.nerf_origins.to(centres)[None]).norm(dim=-1)  # [V, 2]
     cues = {"spread": spread.argmin(0), "camera": cam_w.argmax(0)}
     selection = {name: metrics.selection_score(errors, choice) for name, choice in cues.items()}
     for g in gammas:
@@ -175,8 +181,31 @@ def score_case(case_dir: Path, gammas: list[float], max_views: int | None, conso
             "settings": {"gamma": settings.gamma, "tau": settings.tau,
                          "appearance_matching": settings.appearance_matching},
             "rows": rows, "selection_score": selection, "best_idw_psnr": best_idw, "best_spread": best_spread,
+            "view_ids": ids.tolist(), "per_view_psnr": per_view, "camera_to_origin": camera_distances.tolist(),
+            "best_weight_nerf0": a.flatten().tolist(),
             "best_spread_minus_best_idw_db": rows[best_spread]["psnr"] - best_idw,
             "candidate": rows[best_spread]["psnr"] - best_idw >= TARGET_DB}  # fmt: skip
+
+
+PER_VIEW_COLUMNS = ("nerf 0 alone", "nerf 1 alone", "nearest", "idw-2d", "idw-3d", "idw-sample", "coverage")
+
+
+def _per_view_table(case: dict) -> list[str]:
+    """One row per test view: each NeRF's distance from the camera, PSNR alone and per method, the fitted weight."""
+    if "per_view_psnr" not in case:  # results written before the per-view figures were kept
+        return []
+    pv = case["per_view_psnr"]
+    lines = [f"Per view, {case['case']} (PSNR dB; camera to each NeRF's origin in the common frame; the per-view "
+             "best weight of NeRF 0 fitted to the ground truth):", "",
+             "| view | camera-origin 0 / 1 | " + " | ".join(PER_VIEW_COLUMNS)
+             + " | IDW-Sample - Nearest | best weight 0 |",
+             "| --- | --- | " + " | ".join("---:" for _ in PER_VIEW_COLUMNS) + " | ---: | ---: |"]  # fmt: skip
+    for j, view in enumerate(case["view_ids"]):
+        d, gap = case["camera_to_origin"][j], pv["idw-sample"][j] - pv["nearest"][j]
+        lines.append(f"| {view} | {d[0]:.3f} / {d[1]:.3f} | "
+                     + " | ".join(f"{pv[m][j]:.2f}" for m in PER_VIEW_COLUMNS)
+                     + f" | {gap:+.2f} | {case['best_weight_nerf0'][j]:.2f} |")  # fmt: skip
+    return [*lines, ""]
 
 
 def _markdown(cases: list[dict], command: str) -> str:
@@ -194,6 +223,8 @@ def _markdown(cases: list[dict], command: str) -> str:
     lines += ["", "Selection scores (1: always the per-pixel better NeRF, 0.5: a coin flip): "
               + "; ".join(f"{c['case']}: " + ", ".join(f"{k} {v:.3f}" for k, v in c["selection_score"].items())
                           for c in cases) + ".", ""]  # fmt: skip
+    for c in cases:
+        lines += _per_view_table(c)
     for c in cases:
         per_view = c["rows"]["ceiling: best weight per view"]["psnr"] - c["best_idw_psnr"]
         lines.append(f"- {c['case']}: best spread setting ({c['best_spread']}) - best IDW = "

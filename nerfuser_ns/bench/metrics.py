@@ -16,21 +16,34 @@ from torchmetrics.functional.image import peak_signal_noise_ratio, structural_si
 from nerfuser_ns import runtime
 
 
+def _check_stacks(pred: Tensor, target: Tensor) -> None:
+    if pred.shape != target.shape or pred.ndim != 4 or pred.shape[-1] != 3:
+        raise ValueError(
+            f"expected two [N, H, W, 3] image stacks of one shape, got {tuple(pred.shape)} and {tuple(target.shape)}"
+        )
+
+
+def per_image_psnr(
+    pred: Float[Tensor, "num_images height width 3"], target: Float[Tensor, "num_images height width 3"]
+) -> Float[Tensor, " num_images"]:
+    """PSNR (dB) of each image of ``pred`` against ``target`` in [0, 1] (``pred`` clamped to [0, 1] first)."""
+    _check_stacks(pred, target)
+    pred = pred.float().clamp(0, 1).permute(0, 3, 1, 2)
+    target = target.float().clamp(0, 1).permute(0, 3, 1, 2)
+    return torch.stack(
+        [peak_signal_noise_ratio(p[None], t[None], data_range=1.0) for p, t in zip(pred, target, strict=True)]
+    )
+
+
 def image_metrics(
     pred: Float[Tensor, "num_images height width 3"],
     target: Float[Tensor, "num_images height width 3"],
     lpips: bool = True,
 ) -> dict[str, float]:
     """Mean per-image PSNR (dB), SSIM and LPIPS (NaN when unavailable) of ``pred`` against ``target`` in [0, 1]."""
-    if pred.shape != target.shape or pred.ndim != 4 or pred.shape[-1] != 3:
-        raise ValueError(
-            f"expected two [N, H, W, 3] image stacks of one shape, got {tuple(pred.shape)} and {tuple(target.shape)}"
-        )
+    psnr = per_image_psnr(pred, target)
     pred = pred.float().clamp(0, 1).permute(0, 3, 1, 2)
     target = target.float().clamp(0, 1).permute(0, 3, 1, 2)
-    psnr = torch.stack(
-        [peak_signal_noise_ratio(p[None], t[None], data_range=1.0) for p, t in zip(pred, target, strict=True)]
-    )
     ssim = torch.stack(
         [
             structural_similarity_index_measure(p[None], t[None], data_range=1.0)

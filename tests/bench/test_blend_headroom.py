@@ -47,3 +47,16 @@ def test_the_per_view_weight_recovers_a_known_mix_and_stays_convex(script):
     assert torch.allclose(script.best_view_weight(a, b, target), alpha, atol=1e-5)
     beyond = 2.0 * a - b  # alpha 2: outside the convex range, clamped to 1
     assert script.best_view_weight(a, b, beyond).tolist() == pytest.approx([1.0, 1.0, 1.0])
+
+
+def test_the_per_view_table_states_each_view_and_the_sample_minus_nearest_gap(script):
+    methods = script.PER_VIEW_COLUMNS
+    case = {"case": "street-x", "view_ids": [3, 7], "camera_to_origin": [[0.5, 1.25], [1.0, 0.75]],
+            "best_weight_nerf0": [0.8, 0.2],
+            "per_view_psnr": {m: [20.0 + i, 21.0 + i] for i, m in enumerate(methods)}}  # fmt: skip
+    case["per_view_psnr"]["nearest"], case["per_view_psnr"]["idw-sample"] = [24.0, 22.0], [23.5, 22.25]
+    rows = [line for line in script._per_view_table(case) if line.startswith("| 3 ") or line.startswith("| 7 ")]
+    assert len(rows) == 2
+    assert rows[0].startswith("| 3 | 0.500 / 1.250 |") and rows[0].endswith("| -0.50 | 0.80 |")
+    assert rows[1].endswith("| +0.25 | 0.20 |")
+    assert script._per_view_table({"case": "old"}) == []  # results kept before the per-view figures: no table

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from nerfuser_ns.bench.metrics import image_metrics, selection_score
+from nerfuser_ns.bench.metrics import image_metrics, per_image_psnr, selection_score
 
 
 def test_psnr_of_known_error_and_identity():
@@ -24,11 +24,14 @@ def test_psnr_is_mean_over_images():
     target = torch.zeros(2, 8, 8, 3)
     pred = torch.stack([torch.full((8, 8, 3), 0.1), torch.full((8, 8, 3), 0.01)])  # 20 dB and 40 dB
     assert image_metrics(pred, target, lpips=False)["psnr"] == pytest.approx(30.0, abs=1e-3)
+    assert per_image_psnr(pred, target).tolist() == pytest.approx([20.0, 40.0], abs=1e-3)
 
 
 def test_shape_mismatch_is_an_error():
     with pytest.raises(ValueError, match="expected two"):
         image_metrics(torch.zeros(1, 8, 8, 3), torch.zeros(1, 8, 9, 3))
+    with pytest.raises(ValueError, match="expected two"):
+        per_image_psnr(torch.zeros(8, 8, 3), torch.zeros(8, 8, 3))
 
 
 def test_selection_score():
