@@ -203,6 +203,26 @@ def twin_fallback(choice: SamplingChoice) -> SamplingChoice:
                           f"{choice.reason.split('; ', 1)[-1]}")  # fmt: skip
 
 
+def _gist(reason: str) -> str:
+    """A failure's finding without its advice: the text before the first ``; `` outside parentheses."""
+    depth = 0
+    for i, ch in enumerate(reason):
+        depth += (ch == "(") - (ch == ")")
+        if depth == 0 and reason.startswith("; ", i):
+            return reason[:i]
+    return reason
+
+
+def every_choice_failed(attempts: Sequence[dict], work_dir: Path | str) -> str:
+    """The one-line error when every pose source of the automatic choice failed: what each found, then the causes
+    left (runs of different places, or a capture whose COLMAP poses are inconsistent, which no registration mends)."""
+    found = "; ".join(f"{a['source']} ({a['mode']}): {_gist(a['error'])}" for a in attempts)
+    return (f"no pose source registered the runs, {len(attempts)} tried: {found}. Either the runs do not show the "
+            "same place, or a capture's COLMAP poses are inconsistent (repeated structure can fold a reconstruction, "
+            "and a run trained on it cannot be registered): check each dataset with ns-nerfuser-check-capture and see "
+            f"docs/your_own_captures.md; the renders stay in {work_dir} for the next try")  # fmt: skip
+
+
 def _choice_list(choices: Sequence[SamplingChoice]) -> str:
     """``training (sfm), both (sfm), ...``: each choice's pose source and mode."""
     return ", ".join(f"{c.config.sampling.source} ({c.config.mode})" for c in choices)
@@ -247,11 +267,17 @@ def register(
         try:
             result = register_once(renderers, choice.config, work_dir, console)
         except RegistrationError as e:
+            reason = str(e).splitlines()[0]
             if n + 1 == len(choices):
                 if isinstance(e, RegistrationFailed):  # the rejected record says what was tried before it
                     e.result.sampling_choice = record_choice
-                raise
-            reason = str(e).splitlines()[0]
+                if not tried:
+                    raise
+                summary = every_choice_failed([*tried, {"source": sc.source, "mode": choice.config.mode,
+                                                        "error": reason}], work_dir)  # fmt: skip
+                if isinstance(e, RegistrationFailed):
+                    raise type(e)(summary, e.result) from e
+                raise RegistrationError(summary) from e
             seconds = round(time.perf_counter() - start, 1)  # its renders and SfM, which the record keeps no other way
             attempt = {"source": sc.source, "mode": choice.config.mode, "error": reason, "seconds": seconds}
             if isinstance(e, RegistrationFailed):  # a check refused a solution: keep it, to judge the check later

@@ -263,10 +263,23 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
     text = console.export_text()
     assert "pose sampling: both, mode known-geometry (SfM registered with no pose source" in text
     assert "trying next (4 of 4): both (known-geometry)" in text
-    # every choice failing: the last error is the one raised
-    monkeypatch.setattr(reg_pipeline, "register_once", lambda *a: (_ for _ in ()).throw(reg.RegistrationError("no")))
-    with pytest.raises(reg.RegistrationError, match="no"):
+    # every choice failing: one line with what each try found (its advice dropped) and the causes left
+    def every_one_fails(renderers, config, work_dir, console):
+        raise reg.RegistrationError(f"{config.sampling.source}: depth check failed (ratio 0.84; beyond 0.07); render "
+                                    "more poses")  # fmt: skip
+
+    monkeypatch.setattr(reg_pipeline, "register_once", every_one_fails)
+    with pytest.raises(reg.RegistrationError) as failed:
         reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
+    message = str(failed.value)
+    assert "\n" not in message and message.startswith("no pose source registered the runs, 4 tried: training (sfm): "
+                                                      "training: depth check failed (ratio 0.84; beyond 0.07); both")
+    assert "both (known-geometry): both: depth check failed (ratio 0.84; beyond 0.07). Either" in message
+    assert "render more poses" not in message and "ns-nerfuser-check-capture" in message and str(work) in message
+    # one pose source as given: its own error, unchanged
+    with pytest.raises(reg.RegistrationError, match="^hemisphere: depth check failed .*render more poses$"):
+        reg.register(oc_renderers, reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(source="hemisphere")), work,
+                     console=Console(quiet=True))  # fmt: skip
     # every choice refused by a check: the refused solution (kept as rejected_registration.json) says what ran before it
     def refused(renderers, config, work_dir, console):
         turn = sim3.make_sim3(sim3.so3_exp(np.array([0.0, 0.0, len(config.sampling.source) / 100])), np.zeros(3), 1.0)
@@ -275,7 +288,8 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
         raise reg.RegistrationFailed(f"{config.sampling.source}/{config.mode}: self-check failed", rejected)
 
     monkeypatch.setattr(reg_pipeline, "register_once", refused)
-    with pytest.raises(reg.RegistrationFailed, match="both/known-geometry: self-check failed") as failed:
+    last = "both \\(known-geometry\\): both/known-geometry: self-check failed"
+    with pytest.raises(reg.RegistrationFailed, match=last) as failed:
         reg.register(oc_renderers, reg.RegistrationConfig(), work, console=Console(quiet=True))
     choice = failed.value.result.sampling_choice
     assert (choice["source"], choice["mode"]) == ("both", "known-geometry")
