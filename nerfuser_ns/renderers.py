@@ -167,6 +167,15 @@ class NerfstudioRenderer:
         c2w = self.training_cameras().camera_to_worlds
         return as_4x4(runs.optimized_poses(self._load().model, c2w).detach().cpu().numpy())
 
+    def dataset_folder(self) -> Path | None:
+        """The folder of the run's dataset (``--data`` override or config.yml's, anchored as nerfstudio resolves it);
+        None when it records none or the folder is gone."""
+        path = runs.dataset_path(runs.read_config(self.config_path), self.data_override)
+        if path is None:
+            return None
+        path = path.parent if path.suffix == ".json" else path
+        return path if path.is_dir() else None
+
     def training_image_files(self) -> list[Path]:
         """The training images, in the order of :meth:`training_cameras` (``runs.RunLoadError`` without a dataset)."""
         return [Path(f) for f in self._views().image_filenames]

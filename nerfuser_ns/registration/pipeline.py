@@ -28,6 +28,7 @@ from rich.console import Console
 
 from nerfuser_ns import sim3
 from nerfuser_ns.capture_check import SQUARE_PIXEL_ADVICE, fold_check, intrinsics_check
+from nerfuser_ns.match_check import MatchCheck, check_dataset_matches
 from nerfuser_ns.registration.assemble import build_known_geometry_result, build_result
 from nerfuser_ns.registration.colocated import refine_colocated
 from nerfuser_ns.registration.config import (
@@ -163,9 +164,10 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
 
 def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) -> dict | None:
     """The fold check and the camera check (:mod:`nerfuser_ns.capture_check`) of each run's training cameras in file
-    order, per NeRF name (the fold check's record with the camera's under ``camera``; None when no renderer knows its
-    training images); a folded or drifted capture is warned about: its run was trained on those poses, which no
-    registration mends."""
+    order, and the match check (:mod:`nerfuser_ns.match_check`) of its dataset's COLMAP files, per NeRF name (the fold
+    check's record with the camera's under ``camera`` and the match check's under ``matches``; None when no renderer
+    knows its training images); a folded or drifted capture is warned about: its run was trained on those poses, which
+    no registration mends."""
     out = {}
     for r in renderers:
         files = getattr(r, "training_image_files", None)
@@ -185,6 +187,14 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
             console.print(f"[yellow]warning: {warning}. The run was trained on those poses and no registration mends "
                           "that: check its dataset with ns-nerfuser-check-capture, pose it again or train on its "
                           "larger side (docs/your_own_captures.md)[/]")  # fmt: skip
+        matches = _match_check(r)
+        if matches is not None:
+            out[r.name]["matches"] = matches.to_record()
+            warning = matches.warning(f"NeRF {r.name}'s dataset")
+            if warning is not None:
+                console.print(f"[yellow]warning: {warning}. The run was trained on those poses and no registration "
+                              "mends that: check its dataset with ns-nerfuser-check-capture and pose it again "
+                              "(docs/your_own_captures.md)[/]")  # fmt: skip
         if camera is not None:
             camera_check = intrinsics_check(camera)
             out[r.name]["camera"] = camera_check.to_record()
@@ -193,6 +203,19 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
                 console.print(f"[yellow]warning: {warning}. The run was trained on that camera: {SQUARE_PIXEL_ADVICE} "
                               "before training (docs/your_own_captures.md)[/]")  # fmt: skip
     return out or None
+
+
+def _match_check(renderer: Renderer) -> MatchCheck | None:
+    """The match check of the run's dataset (:mod:`nerfuser_ns.match_check`) where the renderer names a dataset folder
+    with COLMAP's files; None otherwise (the check is a warning, never a reason to stop)."""
+    folder = getattr(renderer, "dataset_folder", lambda: None)()
+    if folder is None:
+        return None
+    try:
+        check = check_dataset_matches(folder)
+    except (ValueError, OSError):
+        return None
+    return check if check.checked else None
 
 
 def twin_fallback(choice: SamplingChoice) -> SamplingChoice:

@@ -11,7 +11,9 @@ Example::
 On repeated structure COLMAP can pose a block of a capture's views by the wrong copy of the structure (see
 :mod:`nerfuser_ns.capture_check`); a run trained on such poses cannot be registered correctly by any method. The check
 needs views filmed in sequence (file names in the order taken; a multi-camera rig's views interleaved exposure by
-exposure are checked camera by camera) and says so when the order is no sequence. A camera whose vertical focal length
+exposure are checked camera by camera) and says so when the order is no sequence. A second check needs no order: it
+asks whether COLMAP's reconstruction explains the image matches COLMAP itself verified (:mod:`nerfuser_ns.match_check`,
+from the ``colmap`` folder ``ns-process-data`` leaves in the dataset). A camera whose vertical focal length
 COLMAP let drift from the horizontal one (views along one line, as from a car) stretches the capture's geometry: it
 is reported with what to run instead.
 """
@@ -37,6 +39,7 @@ from nerfuser_ns.capture_check import (
     dataset_file,
     write_larger_side,
 )
+from nerfuser_ns.match_check import MatchCheck, check_dataset_matches
 
 CONSOLE = Console(soft_wrap=True)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -57,8 +60,11 @@ class CheckCaptureCommand:
         """The exit status: 0 when no capture is folded or drifted, 1 when one is (or an input is bad)."""
         found = False
         # every input read before anything is written
-        checks = [(path, check_dataset(path), check_dataset_intrinsics(path)) for path in self.data]
-        for path, check, camera in checks:
+        checks = [(path, check_dataset(path), check_dataset_intrinsics(path), check_dataset_matches(path))
+                  for path in self.data]  # fmt: skip
+        for path, check, camera, matches in checks:
+            if _report_matches(path, matches):
+                found = True
             camera_warning = camera.warning(str(path))
             if camera_warning is not None:
                 found = True
@@ -94,6 +100,25 @@ class CheckCaptureCommand:
                 CONSOLE.print("  train on its larger side (--write-larger-side: a consistent capture by itself), or "
                               "pose it again and check again")  # fmt: skip
         return 1 if found else 0
+
+
+def _report_matches(path: Path, matches: MatchCheck) -> bool:
+    """Print the match check's verdict (:mod:`nerfuser_ns.match_check`); True when the capture looks folded."""
+    if not matches.checked:
+        CONSOLE.print(f"{path}: matches not checked: {matches.reason}")
+        return False
+    warning = matches.warning(str(path))
+    if warning is None:
+        explained = matches.pairs - len(matches.unexplained)
+        CONSOLE.print(f"{path}: COLMAP's poses explain its verified matches ({explained} of {matches.pairs} image "
+                      "pairs)")  # fmt: skip
+        return False
+    CONSOLE.print(f"[yellow]{warning}[/]")
+    views = ", ".join(f"{Path(name).name} ({n})" for name, n in matches.views()[:8])
+    CONSOLE.print(f"  views in the most unexplained pairs: {views}")
+    CONSOLE.print("  pose the capture again (another matcher, or without those views) and check again; a run trained "
+                  "on these poses cannot be registered correctly")  # fmt: skip
+    return True
 
 
 def run(command: CheckCaptureCommand) -> int:

@@ -1,0 +1,219 @@
+"""The match check (nerfuser_ns.match_check): a synthetic COLMAP database and model of unordered street views, once
+consistent and once with a block of views posed by a half-turn twin, and its verdicts in ns-nerfuser-check-capture."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rich.console import Console
+from scipy.spatial.transform import Rotation
+
+from nerfuser_ns import sim3
+from nerfuser_ns.match_check import (
+    MAX_UNEXPLAINED_SHARE,
+    PAIR_ID_BASE,
+    check_dataset_matches,
+    read_verified_pairs,
+    sampson_distances,
+)
+from nerfuser_ns.registration.pipeline import check_captures
+from nerfuser_ns.scripts import check_capture as cli
+
+FOCAL, WIDTH, HEIGHT = 200.0, 320, 240
+NUM_VIEWS = 12
+FOLDED = (3, 7, 10)
+"""Views the folded model poses by the twin (unordered: spread over the file order)."""
+
+# COLMAP's own table definitions (src/colmap/scene/database.cc), the three this check reads.
+SCHEMA = """
+CREATE TABLE images (image_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, name TEXT NOT NULL UNIQUE,
+    camera_id INTEGER NOT NULL);
+CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB);
+CREATE TABLE two_view_geometries (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL,
+    data BLOB, config INTEGER NOT NULL, F BLOB, E BLOB, H BLOB, qvec BLOB, tvec BLOB);
+"""
+
+
+def _street() -> tuple[np.ndarray, np.ndarray]:
+    """World points on two facades and camera-from-world poses [N, 3, 4] (OpenCV axes) of views along the street,
+    each turned towards one facade or the other, in no filmed order."""
+    rng = np.random.default_rng(0)
+    n = 600
+    side = np.where(rng.random(n) < 0.5, -4.0, 4.0)
+    points = np.stack([side, rng.uniform(-1.5, 1.5, n), rng.uniform(0.0, 12.0, n)], axis=1)  # y down, z along
+    poses = []
+    for i in rng.permutation(NUM_VIEWS):
+        yaw = np.radians(rng.uniform(-35.0, 35.0))
+        R_wc = sim3.so3_exp(np.array([0.0, yaw, 0.0]))  # camera-to-world rotation, looking along +z, turned
+        centre = np.array([rng.uniform(-0.5, 0.5), 0.0, 1.0 * i - 6.0])
+        R = R_wc.T
+        poses.append(np.concatenate([R, (-R @ centre)[:, None]], axis=1))
+    return points, np.stack(poses)
+
+
+def _project(points: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    cam = points @ pose[:, :3].T + pose[:, 3]
+    uv = FOCAL * cam[:, :2] / cam[:, 2:3] + np.array([WIDTH / 2, HEIGHT / 2])
+    seen = (cam[:, 2] > 0.3) & (uv[:, 0] >= 0) & (uv[:, 0] < WIDTH) & (uv[:, 1] >= 0) & (uv[:, 1] < HEIGHT)
+    return uv, seen
+
+
+def _twin(pose: np.ndarray) -> np.ndarray:
+    """The pose by the street's half-turn twin: turned 180 deg about the vertical through the street's middle."""
+    R = sim3.so3_exp(np.radians([0.0, 180.0, 0.0]))
+    half_turn = sim3.make_sim3(R, np.zeros(3))
+    cam_from_world = np.concatenate([pose, [[0.0, 0.0, 0.0, 1.0]]])
+    return (cam_from_world @ np.linalg.inv(half_turn))[:3]
+
+
+def _write_capture(folder: Path, folded: bool) -> Path:
+    """An ns-process-data-like folder: transforms.json, colmap/database.db and the text model colmap/sparse/0."""
+    points, poses = _street()
+    names = [f"frame_{i + 1:05d}.png" for i in range(NUM_VIEWS)]
+    (folder / "colmap" / "sparse" / "0").mkdir(parents=True)
+    con = sqlite3.connect(folder / "colmap" / "database.db")
+    con.executescript(SCHEMA)
+    seen_by, uvs = [], []
+    for i, name in enumerate(names):
+        uv, seen = _project(points, poses[i])
+        con.execute("INSERT INTO images VALUES (?, ?, 1)", (i + 1, name))
+        kp = np.zeros((len(points), 6), np.float32)  # one keypoint per world point (SIFT's affine columns beside)
+        kp[:, :2] = uv
+        con.execute("INSERT INTO keypoints VALUES (?, ?, 6, ?)", (i + 1, len(points), kp.tobytes()))
+        seen_by.append(seen)
+        uvs.append(uv)
+    for a in range(NUM_VIEWS):
+        for b in range(a + 1, NUM_VIEWS):
+            common = np.flatnonzero(seen_by[a] & seen_by[b])
+            if len(common):
+                m = np.stack([common, common], axis=1).astype(np.uint32)
+                con.execute("INSERT INTO two_view_geometries (pair_id, rows, cols, data, config) "
+                            "VALUES (?, ?, 2, ?, 2)",
+                            ((a + 1) * PAIR_ID_BASE + b + 1, len(m), m.tobytes()))  # fmt: skip
+    con.commit()
+    con.close()
+    model = folder / "colmap" / "sparse" / "0"
+    (model / "cameras.txt").write_text(f"1 PINHOLE {WIDTH} {HEIGHT} {FOCAL} {FOCAL} {WIDTH / 2} {HEIGHT / 2}\n")
+    lines = []
+    for i, name in enumerate(names):
+        pose = _twin(poses[i]) if folded and i in FOLDED else poses[i]
+        x, y, z, w = Rotation.from_matrix(pose[:, :3]).as_quat()  # COLMAP writes w first
+        lines += [f"{i + 1} {w} {x} {y} {z} {' '.join(map(str, pose[:, 3]))} 1 {name}", ""]
+    (model / "images.txt").write_text("\n".join(lines) + "\n")
+    (model / "points3D.txt").write_text("")
+    frames = [{"file_path": f"images/{n}", "transform_matrix": np.eye(4).tolist()} for n in names]
+    (folder / "transforms.json").write_text(json.dumps({"camera_model": "PINHOLE", "fl_x": FOCAL, "fl_y": FOCAL,
+                                                        "cx": WIDTH / 2, "cy": HEIGHT / 2, "w": WIDTH, "h": HEIGHT,
+                                                        "frames": frames}))  # fmt: skip
+    return folder
+
+
+def _md5(path: Path) -> str:
+    return hashlib.md5(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture
+def consistent(tmp_path) -> Path:
+    return _write_capture(tmp_path / "consistent", folded=False)
+
+
+@pytest.fixture
+def folded(tmp_path) -> Path:
+    return _write_capture(tmp_path / "folded", folded=True)
+
+
+def test_sampson_distance_is_zero_on_the_epipolar_line_and_the_offset_off_it():
+    R, t = sim3.so3_exp(np.array([0.0, 0.1, 0.0])), np.array([1.0, 0.0, 0.2])
+    X = np.array([[0.3, -0.2, 4.0], [-1.0, 0.5, 6.0]])
+    x1 = X[:, :2] / X[:, 2:]
+    Y = X @ R.T + t
+    x2 = Y[:, :2] / Y[:, 2:]
+    assert sampson_distances(x1, x2, R, t) == pytest.approx([0.0, 0.0], abs=1e-12)
+    assert sampson_distances(x1, x2, R, 7.0 * t) == pytest.approx([0.0, 0.0], abs=1e-12)  # scale-free in t
+    # off the line by d in the second image (the line's normal): distance about d / sqrt(2) (both images share it)
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) / np.linalg.norm(t) @ R
+    line = E @ np.array([*x1[0], 1.0])
+    normal = line[:2] / np.linalg.norm(line[:2])
+    d = sampson_distances(x1[:1], x2[:1] + 1e-3 * normal, R, t)[0]
+    assert 0.5e-3 < d < 1.0e-3
+    assert np.isnan(sampson_distances(x1, x2, R, np.zeros(3))).all()  # no baseline: nothing to judge
+
+
+def test_a_consistent_reconstruction_explains_every_verified_pair(consistent):
+    check = check_dataset_matches(consistent)
+    assert check.checked and check.pairs >= 40 and check.unexplained == [] and not check.folded
+    assert check.warning("capture") is None
+    assert check_dataset_matches(consistent / "transforms.json").pairs == check.pairs  # the file or its folder
+
+
+def test_views_posed_by_the_twin_leave_exactly_their_pairs_with_the_others_unexplained(folded):
+    check = check_dataset_matches(folded)
+    names = [f"frame_{i + 1:05d}.png" for i in range(NUM_VIEWS)]
+    twins = {names[i] for i in FOLDED}
+    _, _, pairs = read_verified_pairs(folded / "colmap" / "database.db")
+    across = {(names[a - 1], names[b - 1]) for a, b, _ in pairs if (names[a - 1] in twins) != (names[b - 1] in twins)}
+    assert set(check.unexplained) == across and len(across) > MAX_UNEXPLAINED_SHARE * check.pairs
+    assert check.folded and "does not explain" in check.warning("capture_1")
+    assert {name for name, _ in check.views()[: len(FOLDED)]} == twins  # the folded views head the list
+    record = check.to_record()
+    assert record["folded"] and record["unexplained_pairs"] == len(across)
+
+
+def test_the_check_never_writes_its_inputs(folded):
+    database = folded / "colmap" / "database.db"
+    con = sqlite3.connect(database)
+    con.execute("PRAGMA journal_mode=WAL")  # as COLMAP leaves its databases
+    con.close()
+    before = sorted(p.name for p in database.parent.iterdir()), _md5(database)
+    check_dataset_matches(folded)
+    assert (sorted(p.name for p in database.parent.iterdir()), _md5(database)) == before
+
+
+def test_no_colmap_folder_is_not_checked_and_a_broken_database_is_one_line(consistent, tmp_path):
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    check = check_dataset_matches(bare)
+    assert not check.checked and not check.folded and "no COLMAP database" in check.reason
+    (consistent / "colmap" / "database.db").write_bytes(b"not a database")
+    with pytest.raises(ValueError, match="not a readable COLMAP database"):
+        check_dataset_matches(consistent)
+
+
+def test_cli_reports_a_fold_of_unordered_views_and_exits_1(consistent, folded, capsys):
+    assert cli.run(cli.CheckCaptureCommand([consistent])) == 0
+    assert "COLMAP's poses explain its verified matches" in capsys.readouterr().out
+    assert cli.run(cli.CheckCaptureCommand([consistent, folded])) == 1
+    out = capsys.readouterr().out
+    assert "does not explain" in out and "views in the most unexplained pairs: frame_" in out
+    assert "pose the capture again" in out
+
+
+class DatasetRun:
+    """A run as the registration sees it: training cameras in file order, and the folder of its dataset."""
+
+    def __init__(self, name: str, folder: Path | None):
+        self.name, self.folder = name, folder
+
+    def training_image_files(self) -> list[Path]:
+        return [Path(f"images/frame_{i + 1:05d}.png") for i in range(NUM_VIEWS)]
+
+    def training_poses(self) -> np.ndarray:
+        return np.tile(np.eye(4), (NUM_VIEWS, 1, 1))
+
+    def dataset_folder(self) -> Path | None:
+        return self.folder
+
+
+def test_registration_warns_about_a_run_whose_dataset_poses_do_not_explain_its_matches(consistent, folded):
+    console = Console(record=True, width=400)
+    records = check_captures([DatasetRun("a", consistent), DatasetRun("b", folded), DatasetRun("c", None)], console)
+    assert not records["a"]["matches"]["folded"] and records["b"]["matches"]["folded"]
+    assert "matches" not in records["c"]  # no dataset folder: nothing to check, no warning
+    text = console.export_text()
+    assert "warning: NeRF b's dataset: COLMAP's reconstruction does not explain" in text
+    assert "NeRF a" not in text
