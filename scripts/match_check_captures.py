@@ -40,17 +40,21 @@ class MatchCheckCaptures:
     output: Path
     """Markdown report (a JSON of the same rows is written beside it)."""
     records: list[Path] = field(default_factory=list)
-    """Bench records with each capture's misposed views (the truth)."""
+    """Bench records or ``scripts/colmap_quality.py`` JSON with each capture's misposed views (the truth)."""
 
 
 def misposed_by_capture(records: list[Path]) -> dict[tuple[str, str], int]:
-    """``(case, capture) -> misposed views`` from the records' COLMAP rows."""
+    """``(case folder name, capture) -> misposed views`` from bench records (one entry per case, its COLMAP rows
+    under ``captures``) or ``scripts/colmap_quality.py``'s JSON (one row per capture, with its ``folder``)."""
     out = {}
     for path in records:
-        for case in json.loads(path.read_text()):  # a record: one entry per case
-            for row in case.get("captures", []):
+        for entry in json.loads(path.read_text()):
+            if "folder" in entry:  # colmap_quality.py
+                out[(Path(entry["folder"]).name, entry["capture"])] = int(entry["misposed"])
+                continue
+            for row in entry.get("captures", []):
                 if row.get("pose_tie_misposed_views") is not None:
-                    out[(case["case"], row["capture"])] = int(row["pose_tie_misposed_views"])
+                    out[(entry["case"], row["capture"])] = int(row["pose_tie_misposed_views"])
     return out
 
 
