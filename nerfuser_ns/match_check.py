@@ -155,7 +155,7 @@ def match_check(reconstruction: pycolmap.Reconstruction, database: Path | str) -
         d = sampson_distances(x1, x2, np.asarray(rel.rotation.matrix()), np.asarray(rel.translation))
         if np.isnan(d).all():
             continue
-        focal = 0.5 * (float(np.mean(cam_a.focal_length_x)) + float(np.mean(cam_b.focal_length_x)))
+        focal = 0.5 * (cam_a.mean_focal_length() + cam_b.mean_focal_length())  # normalised units to pixels
         judged += 1
         if np.mean(d * focal < SAMPSON_PX) < EXPLAINED_SHARE:
             unexplained.append((n1, n2))

@@ -76,7 +76,7 @@ class CheckCaptureCommand:
                               else f"camera fy/fx {camera.aspect:.3f} (square pixels)")  # fmt: skip
             camera_note = f"; {'but ' if camera.drifted else ''}{camera_verdict}"
             if not check.checked:
-                CONSOLE.print(f"{path}: not checked for folds: the median turn between views in file order is "
+                CONSOLE.print(f"{path}: not checked for folds by file order: the median turn between views in it is "
                               f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order "
                               f"is not a filmed sequence, nor a rig of up to {MAX_RIG_CAMERAS} cameras "
                               f"interleaved{camera_note}")  # fmt: skip
