@@ -236,13 +236,21 @@ def _gist(reason: str) -> str:
     return reason
 
 
-def every_choice_failed(attempts: Sequence[dict], work_dir: Path | str) -> str:
+def every_choice_failed(attempts: Sequence[dict], work_dir: Path | str, capture_checks: dict | None = None) -> str:
     """The one-line error when every pose source of the automatic choice failed: what each found, then the causes
-    left (runs of different places, or a capture whose COLMAP poses are inconsistent, which no registration mends)."""
+    left (runs of different places, or a capture whose COLMAP poses are inconsistent, which no registration mends),
+    naming the runs whose capture checks (:func:`check_captures`) found a fold."""
     found = "; ".join(f"{a['source']} ({a['mode']}): {_gist(a['error'])}" for a in attempts)
-    return (f"no pose source registered the runs, {len(attempts)} tried: {found}. Either the runs do not show the "
-            "same place, or a capture's COLMAP poses are inconsistent (repeated structure can fold a reconstruction, "
-            "and a run trained on it cannot be registered): check each dataset with ns-nerfuser-check-capture and see "
+    folded = [name for name, c in (capture_checks or {}).items()
+              if c.get("folded") or (c.get("matches") or {}).get("folded")]  # fmt: skip
+    if folded:
+        cause = (f"The capture check found {', '.join(folded)} trained on folded COLMAP poses (warned above), which no "
+                 "registration mends: pose that capture again, check it with ns-nerfuser-check-capture and train again")
+    else:
+        cause = ("Either the runs do not show the same place, or a capture's COLMAP poses are inconsistent (repeated "
+                 "structure can fold a reconstruction, and a run trained on it cannot be registered): check each "
+                 "dataset with ns-nerfuser-check-capture")
+    return (f"no pose source registered the runs, {len(attempts)} tried: {found}. {cause}; see "
             f"docs/your_own_captures.md; the renders stay in {work_dir} for the next try")  # fmt: skip
 
 
@@ -297,7 +305,7 @@ def register(
                 if not tried:
                     raise
                 summary = every_choice_failed([*tried, {"source": sc.source, "mode": choice.config.mode,
-                                                        "error": reason}], work_dir)  # fmt: skip
+                                                        "error": reason}], work_dir, capture_checks)  # fmt: skip
                 if isinstance(e, RegistrationFailed):
                     raise type(e)(summary, e.result) from e
                 raise RegistrationError(summary) from e

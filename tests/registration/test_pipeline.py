@@ -276,6 +276,12 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
                                                       "training: depth check failed (ratio 0.84; beyond 0.07); both")
     assert "both (known-geometry): both: depth check failed (ratio 0.84; beyond 0.07). Either" in message
     assert "render more poses" not in message and "ns-nerfuser-check-capture" in message and str(work) in message
+    # a run whose capture check found a fold is named as the cause
+    text = reg_pipeline.every_choice_failed(
+        [{"source": "training", "mode": "sfm", "error": "b: separate SfM model; render more"}], work,
+        {"a": {"folded": False, "matches": {"folded": False}}, "b": {"folded": False, "matches": {"folded": True}}})
+    assert "training (sfm): b: separate SfM model. The capture check found b trained on folded COLMAP poses" in text
+    assert "Either the runs" not in text and "render more" not in text
     # one pose source as given: its own error, unchanged
     with pytest.raises(reg.RegistrationError, match="^hemisphere: depth check failed .*render more poses$"):
         reg.register(oc_renderers, reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(source="hemisphere")), work,
