@@ -35,6 +35,8 @@ import numpy as np
 import pycolmap
 from jaxtyping import Float
 
+from nerfuser_ns import sim3
+
 MIN_INLIERS = 30
 """Verified pairs with fewer inlier matches are not judged (too few to tell a fold from a few stray matches)."""
 SAMPSON_PX = 4.0
@@ -89,12 +91,6 @@ class MatchCheck:
                 "reason": self.reason}  # fmt: skip
 
 
-def _skew(v: Float[np.ndarray, "*b 3"]) -> Float[np.ndarray, "*b 3 3"]:
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)  # fmt: skip
-
-
 def sampson_distances(
     x1: Float[np.ndarray, "n 2"], x2: Float[np.ndarray, "n 2"], R: Float[np.ndarray, "3 3"], t: Float[np.ndarray, " 3"]
 ) -> Float[np.ndarray, " n"]:
@@ -103,7 +99,7 @@ def sampson_distances(
     norm = np.linalg.norm(t)
     if norm < 1e-12:
         return np.full(len(x1), np.nan)
-    E = _skew(np.asarray(t, dtype=np.float64) / norm) @ np.asarray(R, dtype=np.float64)
+    E = sim3.so3_hat(np.asarray(t, dtype=np.float64) / norm) @ np.asarray(R, dtype=np.float64)
     p1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1)
     p2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1)
     e1, e2 = p1 @ E.T, p2 @ E

@@ -78,7 +78,7 @@ def _write_capture(folder: Path, folded: bool) -> Path:
     (folder / "colmap" / "sparse" / "0").mkdir(parents=True)
     con = sqlite3.connect(folder / "colmap" / "database.db")
     con.executescript(SCHEMA)
-    seen_by, uvs = [], []
+    seen_by = []
     for i, name in enumerate(names):
         uv, seen = _project(points, poses[i])
         con.execute("INSERT INTO images VALUES (?, ?, 1)", (i + 1, name))
@@ -86,7 +86,6 @@ def _write_capture(folder: Path, folded: bool) -> Path:
         kp[:, :2] = uv
         con.execute("INSERT INTO keypoints VALUES (?, ?, 6, ?)", (i + 1, len(points), kp.tobytes()))
         seen_by.append(seen)
-        uvs.append(uv)
     for a in range(NUM_VIEWS):
         for b in range(a + 1, NUM_VIEWS):
             common = np.flatnonzero(seen_by[a] & seen_by[b])
@@ -136,7 +135,7 @@ def test_sampson_distance_is_zero_on_the_epipolar_line_and_the_offset_off_it():
     assert sampson_distances(x1, x2, R, t) == pytest.approx([0.0, 0.0], abs=1e-12)
     assert sampson_distances(x1, x2, R, 7.0 * t) == pytest.approx([0.0, 0.0], abs=1e-12)  # scale-free in t
     # off the line by d in the second image (the line's normal): distance about d / sqrt(2) (both images share it)
-    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) / np.linalg.norm(t) @ R
+    E = sim3.so3_hat(t / np.linalg.norm(t)) @ R
     line = E @ np.array([*x1[0], 1.0])
     normal = line[:2] / np.linalg.norm(line[:2])
     d = sampson_distances(x1[:1], x2[:1] + 1e-3 * normal, R, t)[0]

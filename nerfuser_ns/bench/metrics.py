@@ -16,23 +16,28 @@ from torchmetrics.functional.image import peak_signal_noise_ratio, structural_si
 from nerfuser_ns import runtime
 
 
-def _check_stacks(pred: Tensor, target: Tensor) -> None:
+def _channels_first(
+    pred: Float[Tensor, "num_images height width 3"], target: Float[Tensor, "num_images height width 3"]
+) -> tuple[Float[Tensor, "num_images 3 height width"], Float[Tensor, "num_images 3 height width"]]:
+    """Both stacks checked, as float in [0, 1], channels first (torchmetrics' layout)."""
     if pred.shape != target.shape or pred.ndim != 4 or pred.shape[-1] != 3:
         raise ValueError(
             f"expected two [N, H, W, 3] image stacks of one shape, got {tuple(pred.shape)} and {tuple(target.shape)}"
         )
+    return pred.float().clamp(0, 1).permute(0, 3, 1, 2), target.float().clamp(0, 1).permute(0, 3, 1, 2)
+
+
+def _psnr_each(pred: Float[Tensor, "n 3 h w"], target: Float[Tensor, "n 3 h w"]) -> Float[Tensor, " n"]:
+    return torch.stack(
+        [peak_signal_noise_ratio(p[None], t[None], data_range=1.0) for p, t in zip(pred, target, strict=True)]
+    )
 
 
 def per_image_psnr(
     pred: Float[Tensor, "num_images height width 3"], target: Float[Tensor, "num_images height width 3"]
 ) -> Float[Tensor, " num_images"]:
     """PSNR (dB) of each image of ``pred`` against ``target`` in [0, 1] (``pred`` clamped to [0, 1] first)."""
-    _check_stacks(pred, target)
-    pred = pred.float().clamp(0, 1).permute(0, 3, 1, 2)
-    target = target.float().clamp(0, 1).permute(0, 3, 1, 2)
-    return torch.stack(
-        [peak_signal_noise_ratio(p[None], t[None], data_range=1.0) for p, t in zip(pred, target, strict=True)]
-    )
+    return _psnr_each(*_channels_first(pred, target))
 
 
 def image_metrics(
@@ -41,9 +46,8 @@ def image_metrics(
     lpips: bool = True,
 ) -> dict[str, float]:
     """Mean per-image PSNR (dB), SSIM and LPIPS (NaN when unavailable) of ``pred`` against ``target`` in [0, 1]."""
-    psnr = per_image_psnr(pred, target)
-    pred = pred.float().clamp(0, 1).permute(0, 3, 1, 2)
-    target = target.float().clamp(0, 1).permute(0, 3, 1, 2)
+    pred, target = _channels_first(pred, target)
+    psnr = _psnr_each(pred, target)
     ssim = torch.stack(
         [
             structural_similarity_index_measure(p[None], t[None], data_range=1.0)
