@@ -28,6 +28,7 @@ same way): ``pycolmap.Database.open`` migrates an older COLMAP's database in pla
 from __future__ import annotations
 
 import sqlite3
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,10 +80,7 @@ class MatchCheck:
 
     def views(self) -> list[tuple[str, int]]:
         """Image names by how many unexplained pairs they are in, most first: where to look."""
-        counts: dict[str, int] = {}
-        for pair in self.unexplained:
-            for name in pair:
-                counts[name] = counts.get(name, 0) + 1
+        counts = Counter(name for pair in self.unexplained for name in pair)
         return sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
 
     def to_record(self) -> dict:

@@ -106,6 +106,7 @@ class NerfstudioRenderer:
         self.name = name or str(config_path)
         self.device = device
         self.data_override = data_override
+        self._dataset_path = runs.dataset_path(config, data_override)
         self.eval_num_rays_per_chunk = eval_num_rays_per_chunk
         self._loaded = None
         self._training_views = None
@@ -170,7 +171,7 @@ class NerfstudioRenderer:
     def dataset_folder(self) -> Path | None:
         """The folder of the run's dataset (``--data`` override or config.yml's, anchored as nerfstudio resolves it);
         None when it records none or the folder is gone."""
-        path = runs.dataset_path(runs.read_config(self.config_path), self.data_override)
+        path = self._dataset_path
         if path is None:
             return None
         path = path.parent if path.suffix == ".json" else path
