@@ -769,6 +769,14 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
                      for cap, c in r["capture_check"].items()]  # fmt: skip
             lines += [f"Capture check of {r['case']} (`ns-nerfuser-check-capture --write-larger-side` before "
                       f"training): {'; '.join(parts)}.", ""]  # fmt: skip
+    for r in records:
+        checked = [c for c in r["captures"] if "match_check_folded" in c]
+        if checked:
+            parts = [f"{c['capture']}: {'folded' if c['match_check_folded'] else 'consistent'} "
+                     f"({100 * c['match_check_unexplained_share']:.1f}% of {c['match_check_pairs']} verified pairs "
+                     "unexplained)" for c in checked]  # fmt: skip
+            lines += [f"Match check of {r['case']} (COLMAP's verified matches against its reconstruction, as "
+                      f"`ns-nerfuser-check-capture` runs it): {'; '.join(parts)}.", ""]  # fmt: skip
     lines += ["## Registration (every default of `ns-nerfuser-register`)", "",
               "| case | NeRF | r_err (deg) | t_err | s_err | ok | COLMAP rot err (deg, median per capture) | "
               "COLMAP centre err (median, / capture radius) | COLMAP bend (deg) | posed / views |",

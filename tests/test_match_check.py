@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import sqlite3
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from rich.console import Console
 from scipy.spatial.transform import Rotation
 
 from nerfuser_ns import sim3
+from nerfuser_ns.bench.practitioner_cases import case_layout, colmap_tie
 from nerfuser_ns.match_check import (
     MAX_UNEXPLAINED_SHARE,
     PAIR_ID_BASE,
@@ -216,3 +218,23 @@ def test_registration_warns_about_a_run_whose_dataset_poses_do_not_explain_its_m
     text = console.export_text()
     assert "warning: NeRF b's dataset: COLMAP's reconstruction does not explain" in text
     assert "NeRF a" not in text
+
+
+def test_the_benchmarks_colmap_record_carries_the_verdict(consistent, folded, tmp_path):
+    """scripts/bench_practitioner.py reports the check per capture from the record of :func:`colmap_tie`."""
+    layout = case_layout("street:3", width=WIDTH, height=HEIGHT)
+    case = tmp_path / "case"
+    for cap, source in zip(layout.captures, (consistent, folded), strict=False):
+        shutil.copytree(source, case / "datasets" / cap.name)
+        transforms = case / "datasets" / cap.name / "transforms.json"
+        data = json.loads(transforms.read_text())
+        for i, frame in enumerate(data["frames"]):  # posed at the truth: the tie itself is not under test
+            frame["transform_matrix"] = cap.c2w_world[i].tolist()
+        transforms.write_text(json.dumps(data))
+    records = [colmap_tie(cap, case)[0] for cap in layout.captures[:2]]
+    assert [r["match_check_folded"] for r in records] == [False, True]
+    assert records[0]["match_check_unexplained_share"] == 0.0
+    assert records[1]["match_check_unexplained_share"] > MAX_UNEXPLAINED_SHARE
+    assert records[0]["match_check_pairs"] == records[1]["match_check_pairs"] > 0
+    shutil.rmtree(case / "datasets" / layout.captures[0].name / "colmap")  # posed another way: no verdict, no key
+    assert "match_check_folded" not in colmap_tie(layout.captures[0], case)[0]

@@ -18,6 +18,7 @@ from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
 from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset_intrinsics
 from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.match_check import check_dataset_matches
 from nerfuser_ns.registration.record import write_registration
 
 BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
@@ -361,6 +362,11 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
         "pose_tie_rot_err_deg_median": pose_rot_err,
         "pose_tie_misposed_views": sum(misposed.values()),
     }
+    matches = check_dataset_matches(dataset_transforms(case_dir, cap.name))
+    if matches.checked:  # the fold check the user's guide runs before training (ns-nerfuser-check-capture)
+        record["match_check_pairs"] = matches.pairs
+        record["match_check_unexplained_share"] = round(matches.unexplained_share, 4)
+        record["match_check_folded"] = matches.folded
     return record, data_to_world, pose_to_world, world_scale
 
 
