@@ -37,7 +37,7 @@ from __future__ import annotations
 import json
 import re
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -264,6 +264,13 @@ def dataset_file(path: Path | str) -> Path:
     return file
 
 
+def path_suffixes(file_path: str) -> set[str]:
+    """Every trailing part of a frame's ``file_path`` (``images/a/b.png``: ``b.png``, ``a/b.png``,
+    ``images/a/b.png``): how a frame is found by its own path or by the image name COLMAP stored for it."""
+    parts = Path(file_path).parts
+    return {Path(*parts[i:]).as_posix() for i in range(len(parts))}
+
+
 def check_dataset(path: Path | str) -> FoldCheck:
     """:func:`fold_check` on every frame of a nerfstudio dataset (``ns-process-data``'s transforms.json), in the
     order of the frames' file paths."""
@@ -342,18 +349,23 @@ def check_dataset_intrinsics(path: Path | str) -> IntrinsicsCheck:
     return intrinsics_check(Intrinsics(float(fx), float(fy), float(cx), float(cy), int(round(w)), int(round(h))))
 
 
-def write_larger_side(path: Path | str, check: FoldCheck, output: Path | str) -> Path:
-    """Write a copy of the dataset's transforms.json without ``check``'s suspect views (the smaller side of the
-    fold) to ``output`` (atomically; never over the dataset's own file). ``ply_file_path`` is dropped: COLMAP's points
-    hold both sides'. Train on it with ``ns-train nerfacto --data <output>``."""
+def write_larger_side(
+    path: Path | str, drop: Collection[str], output: Path | str, found_by: str = "file order"
+) -> Path:
+    """Write a copy of the dataset's transforms.json without the frames ``drop`` names (by their file paths or the
+    image names COLMAP stored: :func:`path_suffixes`; the smaller side of a fold, as ``found_by`` found it) to
+    ``output`` (atomically; never over the dataset's own file). ``ply_file_path`` is dropped: COLMAP's points hold
+    both sides'. Train on it with ``ns-train nerfacto --data <output>``."""
     file, output = dataset_file(path), Path(output)
     if output.resolve() == file.resolve():
         raise ValueError(f"{output}: the dataset's own transforms.json; write the larger side to another file")
     meta = json.loads(file.read_text())
-    drop = set(check.suspect)
-    meta["frames"] = [f for f in meta["frames"] if str(f["file_path"]) not in drop]
+    drop = set(drop)
+    kept = [f for f in meta["frames"] if not path_suffixes(str(f["file_path"])) & drop]
+    dropped = sorted(str(f["file_path"]) for f in meta["frames"] if path_suffixes(str(f["file_path"])) & drop)
+    meta["frames"] = kept
     meta.pop("ply_file_path", None)
-    meta["nerfuser_larger_side"] = {"source": file.name, "dropped": sorted(drop)}
+    meta["nerfuser_larger_side"] = {"source": file.name, "found_by": found_by, "dropped": dropped}
     # nerfstudio resolves file paths against the json's folder: keep them valid wherever the copy is written
     if output.parent.resolve() != file.parent.resolve():
         for f in meta["frames"]:

@@ -21,22 +21,38 @@ views share a centre (no baseline: no epipolar geometry) are not judged.
 The constants were fixed on one capture pair (street-8: its folded capture 29 of 521 pairs unexplained, the other 0 of
 599) before the check saw any other capture (``reports/match_check_captures.md``).
 
+**The two sides of a fold** (:func:`fold_sides`). Where repeated structure folded a capture of views that look two
+ways (a street's two facades), the views form two groups joined by a few pairs, and those the reconstruction does not
+explain. The graph of explained pairs is cut in two (its connected components, else the sign of the Fiedler vector of
+its normalised Laplacian, the relaxed normalised cut); the cut is a fold's two sides only when each side alone passes
+the check (at most :data:`MAX_UNEXPLAINED_SHARE` unexplained within it), few pairs cross it (at most
+:data:`MAX_CROSS_SHARE` of the judged pairs) and most of those that do are unexplained (at least
+:data:`MIN_CROSS_UNEXPLAINED_SHARE`). Otherwise (a capture folded all through, as our row houses, or one whose sides
+keep many pairs, as our rooms, where matches between copies of the room are explained by the fold itself) there are no
+sides to train on. These three constants were set on the folded captures on disk (street-8: 24 views face the other
+facade, its sides cut exactly; room-7 and row-houses-3/4 refused), not on a fresh one.
+
 The database is opened read-only with Python's ``sqlite3`` (COLMAP's own ``scripts/python/database.py`` reads it the
 same way): ``pycolmap.Database.open`` migrates an older COLMAP's database in place, and a check never writes its inputs.
 """
 
 from __future__ import annotations
 
+import json
 import sqlite3
 from collections import Counter
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 from jaxtyping import Float
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, laplacian
 
 from nerfuser_ns import sim3
+from nerfuser_ns.capture_check import path_suffixes
 
 MIN_INLIERS = 30
 """Verified pairs with fewer inlier matches are not judged (too few to tell a fold from a few stray matches)."""
@@ -46,6 +62,10 @@ EXPLAINED_SHARE = 0.5
 """A pair is explained when at least this share of its inliers lie on their epipolar lines."""
 MAX_UNEXPLAINED_SHARE = 0.02
 """A capture with more than this share of its judged pairs unexplained is reported folded."""
+MAX_CROSS_SHARE = 0.1
+"""Two sides of a fold share at most this share of the judged pairs (:func:`fold_sides`)."""
+MIN_CROSS_UNEXPLAINED_SHARE = 0.5
+"""Of the pairs across two sides of a fold, at least this share are unexplained (:func:`fold_sides`)."""
 PAIR_ID_BASE = 2147483647
 """COLMAP's ``pair_id = PAIR_ID_BASE * image_id1 + image_id2`` (``image_id1 < image_id2``)."""
 
@@ -59,6 +79,8 @@ class MatchCheck:
     """Verified pairs judged."""
     unexplained: list[tuple[str, str]] = field(default_factory=list)
     """The image names of each pair the reconstruction does not explain."""
+    explained: list[tuple[str, str]] = field(default_factory=list)
+    """The image names of each pair it explains."""
     reason: str | None = None
 
     @property
@@ -83,10 +105,54 @@ class MatchCheck:
         counts = Counter(name for pair in self.unexplained for name in pair)
         return sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
 
+    def smaller_side(self) -> tuple[str, ...] | None:
+        """The image names of a folded capture's smaller side (:func:`fold_sides`); None when it is not folded or its
+        views form no two consistent sides."""
+        if not self.folded:
+            return None
+        sides = fold_sides(self.explained, self.unexplained)
+        return None if sides is None else sides[1]
+
     def to_record(self) -> dict:
+        smaller = self.smaller_side()
         return {"checked": self.checked, "pairs": self.pairs, "unexplained_pairs": len(self.unexplained),
                 "unexplained_share": round(self.unexplained_share, 4), "folded": self.folded,
-                "reason": self.reason}  # fmt: skip
+                "smaller_side": None if smaller is None else list(smaller), "reason": self.reason}  # fmt: skip
+
+
+def fold_sides(
+    explained: Collection[tuple[str, str]], unexplained: Collection[tuple[str, str]]
+) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
+    """The larger and the smaller side of a fold (image names, sorted): the cut of the explained-pair graph described
+    in the module's docstring, or None when the cut is no fold's two sides."""
+    views = sorted({name for pair in [*explained, *unexplained] for name in pair})
+    if len(views) < 2 or not explained:
+        return None
+    index = {name: i for i, name in enumerate(views)}
+    ij = np.array([(index[a], index[b]) for a, b in explained]).T
+    graph = coo_matrix((np.ones(ij.shape[1]), (ij[0], ij[1])), shape=(len(views),) * 2)
+    graph = (graph + graph.T).tocsr()
+    count, component = connected_components(graph, directed=False)
+    if count > 1:  # no explained pair joins them: the largest component against the rest
+        side = component == np.bincount(component).argmax()
+    else:
+        # a dense eigensolve: a capture's views number in the hundreds
+        _, vectors = np.linalg.eigh(laplacian(graph, normed=True).toarray())
+        side = vectors[:, 1] > 0
+    if side.sum() < len(views) - side.sum():
+        side = ~side
+    larger = {views[i] for i in np.flatnonzero(side)}
+    # per pair, how many of its views lie on the larger side: 0 or 2 within a side, 1 across
+    good = np.array([(a in larger) + (b in larger) for a, b in explained], dtype=int)
+    bad = np.array([(a in larger) + (b in larger) for a, b in unexplained], dtype=int)
+    for where in (0, 2):  # each side alone passes the check
+        total = (good == where).sum() + (bad == where).sum()
+        if total == 0 or (bad == where).sum() > MAX_UNEXPLAINED_SHARE * total:
+            return None
+    cross = (good == 1).sum() + (bad == 1).sum()
+    if cross > MAX_CROSS_SHARE * (len(good) + len(bad)) or (bad == 1).sum() < MIN_CROSS_UNEXPLAINED_SHARE * cross:
+        return None
+    return tuple(sorted(larger)), tuple(v for v in views if v not in larger)
 
 
 def sampson_distances(
@@ -132,11 +198,17 @@ def read_verified_pairs(
     return names, keypoints, pairs
 
 
-def match_check(reconstruction: pycolmap.Reconstruction, database: Path | str) -> MatchCheck:
-    """Judge every verified pair of ``database`` whose two images ``reconstruction`` posed."""
+def match_check(
+    reconstruction: pycolmap.Reconstruction, database: Path | str, views: Collection[str] | None = None
+) -> MatchCheck:
+    """Judge every verified pair of ``database`` whose two images ``reconstruction`` posed (and ``views`` names, image
+    names as COLMAP stores them, where given)."""
     names, keypoints, pairs = read_verified_pairs(database)
     posed = {image.name: image for image in reconstruction.images.values()}
-    judged, unexplained = 0, []
+    if views is not None:
+        views = set(views)
+        posed = {name: image for name, image in posed.items() if name in views}
+    judged, unexplained, explained = 0, [], []
     for id1, id2, matches in pairs:
         n1, n2 = names.get(id1), names.get(id2)
         if n1 not in posed or n2 not in posed or id1 not in keypoints or id2 not in keypoints:
@@ -151,16 +223,22 @@ def match_check(reconstruction: pycolmap.Reconstruction, database: Path | str) -
             continue
         focal = 0.5 * (cam_a.mean_focal_length() + cam_b.mean_focal_length())  # normalised units to pixels
         judged += 1
-        if np.mean(d * focal < SAMPSON_PX) < EXPLAINED_SHARE:
-            unexplained.append((n1, n2))
-    return MatchCheck(checked=True, pairs=judged, unexplained=unexplained)
+        (explained if np.mean(d * focal < SAMPSON_PX) >= EXPLAINED_SHARE else unexplained).append((n1, n2))
+    return MatchCheck(checked=True, pairs=judged, unexplained=unexplained, explained=explained)
 
 
 def check_dataset_matches(path: Path | str) -> MatchCheck:
-    """:func:`match_check` on an ``ns-process-data`` output folder (or its transforms.json): its
-    ``colmap/database.db`` and ``colmap/sparse/0``; not checked (with the reason) where they are missing."""
+    """:func:`match_check` on an ``ns-process-data`` output folder (or a transforms file in it: then of its frames
+    alone, as a run trained on ``transforms_larger_side.json`` saw them): its ``colmap/database.db`` and
+    ``colmap/sparse/0``; not checked (with the reason) where they are missing."""
     folder = Path(path)
-    folder = folder.parent if folder.is_file() else folder
+    views = None
+    if folder.is_file():
+        try:
+            views = set().union(*(path_suffixes(str(f["file_path"])) for f in json.loads(folder.read_text())["frames"]))
+        except (json.JSONDecodeError, KeyError, TypeError) as e:
+            raise ValueError(f"{folder}: not a transforms file with frames ({e})") from None
+        folder = folder.parent
     database, model = folder / "colmap" / "database.db", folder / "colmap" / "sparse" / "0"
     if not database.is_file() or not model.is_dir():
         reason = f"no COLMAP database and model under {folder / 'colmap'} (posed another way, or it was removed)"
@@ -169,4 +247,4 @@ def check_dataset_matches(path: Path | str) -> MatchCheck:
         reconstruction = pycolmap.Reconstruction(str(model))
     except (RuntimeError, ValueError) as e:
         raise ValueError(f"{model}: not a readable COLMAP model ({e})") from None
-    return match_check(reconstruction, database)
+    return match_check(reconstruction, database, views)

@@ -168,14 +168,14 @@ class NerfstudioRenderer:
         c2w = self.training_cameras().camera_to_worlds
         return as_4x4(runs.optimized_poses(self._load().model, c2w).detach().cpu().numpy())
 
-    def dataset_folder(self) -> Path | None:
-        """The folder of the run's dataset (``--data`` override or config.yml's, anchored as nerfstudio resolves it);
-        None when it records none or the folder is gone."""
+    def dataset_path(self) -> Path | None:
+        """The run's dataset as it was given (``--data`` override or config.yml's, anchored as nerfstudio resolves it):
+        a folder, or the transforms file the run trained on (``transforms_larger_side.json``); None when it records
+        none or it is gone."""
         path = self._dataset_path
         if path is None:
             return None
-        path = path.parent if path.suffix == ".json" else path
-        return path if path.is_dir() else None
+        return path if (path.is_file() if path.suffix == ".json" else path.is_dir()) else None
 
     def training_image_files(self) -> list[Path]:
         """The training images, in the order of :meth:`training_cameras` (``runs.RunLoadError`` without a dataset)."""

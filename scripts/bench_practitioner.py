@@ -77,6 +77,7 @@ from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
 from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset
 from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.match_check import check_dataset_matches
 from nerfuser_ns.registration import RegistrationConfig, RegistrationFailed, read_registration
 from nerfuser_ns.registration.record import iter_registered_nerfs
 from nerfuser_ns.renderers import NerfstudioRenderer
@@ -327,7 +328,12 @@ def stage_check(layout, case_dir: Path) -> None:
         proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
     if proc.returncode not in (0, 1) or "error:" in log.read_text():
         raise RuntimeError(f"ns-nerfuser-check-capture failed (exit {proc.returncode}), see {log}")
-    checks = {cap.name: check_dataset(d).to_record() for cap, d in zip(layout.captures, datasets, strict=True)}
+    checks = {}
+    for cap, d in zip(layout.captures, datasets, strict=True):
+        larger = Path(d) / LARGER_SIDE_NAME
+        checks[cap.name] = {**check_dataset(d).to_record(), "matches": check_dataset_matches(d).to_record(),
+                            "larger_side": json.loads(larger.read_text())["nerfuser_larger_side"]
+                            if larger.is_file() else None}  # fmt: skip
     write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
 
 
@@ -722,6 +728,23 @@ def _posed_cell(c: dict) -> str:
     return cell + (f" ({'; '.join(extra)})" if extra else "")
 
 
+def _capture_check_cell(c: dict) -> str:
+    """What ``ns-nerfuser-check-capture --write-larger-side`` found for one capture (``capture_check.json``; records
+    before the match check was recorded there carry the file order's verdict alone)."""
+    side = c.get("larger_side")
+    if side is not None:
+        return (f"folded (by the {side.get('found_by', 'file order')}), {len(side['dropped'])} of {c['num_views']} "
+                "views dropped, trained on the larger side")  # fmt: skip
+    order = ("not checked by file order (no sequence)" if not c["checked"] else
+             f"folded by file order, {c['suspect_views']} of {c['num_views']} views suspect" if c["folded"] else
+             "not folded by file order")  # fmt: skip
+    matches = c.get("matches")
+    if not matches or not matches["checked"]:
+        return order
+    return order + ("; folded by the match check, no sides to train on: trained on every view" if matches["folded"]
+                    else "; the match check found it consistent")  # fmt: skip
+
+
 def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> None:
     training = (f"{cfg.max_num_iterations} steps with CPU-sized options ({' '.join(TRAIN_OPTIONS)})"
                 if cfg.train_preset == "cpu" else
@@ -763,10 +786,7 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
             for c, src, m, k in shared) + ".", ""]
     for r in records:
         if r.get("capture_check"):
-            parts = [f"{cap}: " + ("not checked (file order no sequence)" if not c["checked"] else
-                                   f"folded, {c['suspect_views']} of {c['num_views']} views suspect, trained on the "
-                                   "larger side" if c["folded"] else "not folded")
-                     for cap, c in r["capture_check"].items()]  # fmt: skip
+            parts = [f"{cap}: {_capture_check_cell(c)}" for cap, c in r["capture_check"].items()]
             lines += [f"Capture check of {r['case']} (`ns-nerfuser-check-capture --write-larger-side` before "
                       f"training): {'; '.join(parts)}.", ""]  # fmt: skip
     for r in records:

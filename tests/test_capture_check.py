@@ -180,13 +180,13 @@ def test_larger_side_is_written_beside_and_never_over_the_dataset(room_poses, tm
     original = (data / "transforms.json").read_text()
     check = check_dataset(data)
     with pytest.raises(ValueError, match="own transforms.json"):
-        write_larger_side(data, check, data / "transforms.json")
-    out = write_larger_side(data, check, data / LARGER_SIDE_NAME)
+        write_larger_side(data, check.suspect, data / "transforms.json")
+    out = write_larger_side(data, check.suspect, data / LARGER_SIDE_NAME)
     assert (data / "transforms.json").read_text() == original
     meta = json.loads(out.read_text())
     assert len(meta["frames"]) == 44 and "ply_file_path" not in meta
     assert not check_dataset(out).folded  # the larger side alone is a consistent sequence
-    elsewhere = write_larger_side(data, check, tmp_path / "other" / "larger.json")
+    elsewhere = write_larger_side(data, check.suspect, tmp_path / "other" / "larger.json")
     assert Path(json.loads(elsewhere.read_text())["frames"][0]["file_path"]) == (data / "images/frame_00001.png")
 
 

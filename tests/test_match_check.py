@@ -16,10 +16,12 @@ from scipy.spatial.transform import Rotation
 
 from nerfuser_ns import sim3
 from nerfuser_ns.bench.practitioner_cases import case_layout, colmap_tie
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME, write_larger_side
 from nerfuser_ns.match_check import (
     MAX_UNEXPLAINED_SHARE,
     PAIR_ID_BASE,
     check_dataset_matches,
+    fold_sides,
     read_verified_pairs,
     sampson_distances,
 )
@@ -58,6 +60,28 @@ def _street() -> tuple[np.ndarray, np.ndarray]:
     return points, np.stack(poses)
 
 
+TWO_WAY_VIEWS = 20
+TWO_WAY_RIGHT = tuple(range(1, TWO_WAY_VIEWS - 1, 3))
+"""Views of the two-way street that face the right facade (and are folded); the others face the left, but the last,
+which looks along the street and sees both (the one view joining the two groups)."""
+
+
+def _two_way_street() -> tuple[np.ndarray, np.ndarray]:
+    """As :func:`_street`, but each view faces one facade square on (so views facing different facades share no
+    match), and one view looks along the street: a capture of two groups of views joined by one view."""
+    rng = np.random.default_rng(1)
+    n = 1200
+    side = np.where(rng.random(n) < 0.5, -4.0, 4.0)
+    points = np.stack([side, rng.uniform(-1.5, 1.5, n), rng.uniform(-8.0, 20.0, n)], axis=1)
+    poses = []
+    for i in range(TWO_WAY_VIEWS):
+        yaw = 0.0 if i == TWO_WAY_VIEWS - 1 else 90.0 if i in TWO_WAY_RIGHT else -90.0
+        R = sim3.so3_exp(np.radians([0.0, yaw, 0.0])).T
+        centre = np.array([0.0, 0.0, -6.0 if i == TWO_WAY_VIEWS - 1 else 0.6 * i])
+        poses.append(np.concatenate([R, (-R @ centre)[:, None]], axis=1))
+    return points, np.stack(poses)
+
+
 def _project(points: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     cam = points @ pose[:, :3].T + pose[:, 3]
     uv = FOCAL * cam[:, :2] / cam[:, 2:3] + np.array([WIDTH / 2, HEIGHT / 2])
@@ -73,10 +97,12 @@ def _twin(pose: np.ndarray) -> np.ndarray:
     return (cam_from_world @ np.linalg.inv(half_turn))[:3]
 
 
-def _write_capture(folder: Path, folded: bool) -> Path:
-    """An ns-process-data-like folder: transforms.json, colmap/database.db and the text model colmap/sparse/0."""
-    points, poses = _street()
-    names = [f"frame_{i + 1:05d}.png" for i in range(NUM_VIEWS)]
+def _write_capture(folder: Path, folded: bool, scene=_street, twins: tuple[int, ...] = FOLDED) -> Path:
+    """An ns-process-data-like folder: transforms.json, colmap/database.db and the text model colmap/sparse/0; with
+    ``folded``, the views ``twins`` posed by the half-turn twin."""
+    points, poses = scene()
+    num_views = len(poses)
+    names = [f"frame_{i + 1:05d}.png" for i in range(num_views)]
     (folder / "colmap" / "sparse" / "0").mkdir(parents=True)
     con = sqlite3.connect(folder / "colmap" / "database.db")
     con.executescript(SCHEMA)
@@ -88,8 +114,8 @@ def _write_capture(folder: Path, folded: bool) -> Path:
         kp[:, :2] = uv
         con.execute("INSERT INTO keypoints VALUES (?, ?, 6, ?)", (i + 1, len(points), kp.tobytes()))
         seen_by.append(seen)
-    for a in range(NUM_VIEWS):
-        for b in range(a + 1, NUM_VIEWS):
+    for a in range(num_views):
+        for b in range(a + 1, num_views):
             common = np.flatnonzero(seen_by[a] & seen_by[b])
             if len(common):
                 m = np.stack([common, common], axis=1).astype(np.uint32)
@@ -102,7 +128,7 @@ def _write_capture(folder: Path, folded: bool) -> Path:
     (model / "cameras.txt").write_text(f"1 PINHOLE {WIDTH} {HEIGHT} {FOCAL} {FOCAL} {WIDTH / 2} {HEIGHT / 2}\n")
     lines = []
     for i, name in enumerate(names):
-        pose = _twin(poses[i]) if folded and i in FOLDED else poses[i]
+        pose = _twin(poses[i]) if folded and i in twins else poses[i]
         x, y, z, w = Rotation.from_matrix(pose[:, :3]).as_quat()  # COLMAP writes w first
         lines += [f"{i + 1} {w} {x} {y} {z} {' '.join(map(str, pose[:, 3]))} 1 {name}", ""]
     (model / "images.txt").write_text("\n".join(lines) + "\n")
@@ -126,6 +152,11 @@ def consistent(tmp_path) -> Path:
 @pytest.fixture
 def folded(tmp_path) -> Path:
     return _write_capture(tmp_path / "folded", folded=True)
+
+
+@pytest.fixture
+def two_way(tmp_path) -> Path:
+    return _write_capture(tmp_path / "two_way", folded=True, scene=_two_way_street, twins=TWO_WAY_RIGHT)
 
 
 def test_sampson_distance_is_zero_on_the_epipolar_line_and_the_offset_off_it():
@@ -194,6 +225,55 @@ def test_cli_reports_a_fold_of_unordered_views_and_exits_1(consistent, folded, c
     assert "pose the capture again" in out
 
 
+def _two_way_names() -> tuple[set[str], set[str]]:
+    names = {f"frame_{i + 1:05d}.png" for i in range(TWO_WAY_VIEWS)}
+    right = {f"frame_{i + 1:05d}.png" for i in TWO_WAY_RIGHT}
+    return names - right, right
+
+
+def test_two_groups_joined_by_unexplained_pairs_are_the_folds_sides(two_way):
+    check = check_dataset_matches(two_way)
+    left, right = _two_way_names()
+    assert check.folded and set(check.smaller_side()) == right
+    assert set(check.to_record()["smaller_side"]) == right
+    assert fold_sides(check.explained[::-1], check.unexplained[::-1]) == (tuple(sorted(left)), tuple(sorted(right)))
+    # checked on the views of the larger side alone (what a run trained on it saw): nothing unexplained
+    larger = write_larger_side(two_way, right, two_way / LARGER_SIDE_NAME, "matches")
+    alone = check_dataset_matches(larger)
+    assert not alone.folded and alone.unexplained == [] and alone.pairs == check.pairs - len(check.unexplained) - sum(
+        (a in right) and (b in right) for a, b in check.explained)
+
+
+def test_no_sides_where_the_fold_runs_through_the_capture_or_the_sides_share_many_pairs(folded):
+    assert check_dataset_matches(folded).folded and check_dataset_matches(folded).smaller_side() is None
+    a = [(f"a{i}", f"a{j}") for i in range(8) for j in range(i + 1, 8)]  # 28 pairs within each group
+    b = [(f"b{i}", f"b{j}") for i in range(6) for j in range(i + 1, 6)]
+    bridge = [("a0", "b0"), ("a1", "b1")]
+    assert fold_sides(a + b, bridge) == tuple(tuple(sorted({v for pair in g for v in pair})) for g in (a, b))
+    assert fold_sides(a + b + bridge, [("a2", "b2")]) is None  # most pairs across are explained (our rooms)
+    many = [(f"a{i}", f"b{i % 6}") for i in range(8)]
+    assert fold_sides(a + b, bridge + many) is None  # too many pairs across
+    assert fold_sides(a[2:] + b, bridge + a[:2]) is None  # a side that does not explain itself (our row houses)
+    assert fold_sides([], bridge) is None
+
+
+def test_cli_writes_the_larger_side_the_matches_show_and_advises_without_it(two_way, folded, capsys):
+    assert cli.run(cli.CheckCaptureCommand([two_way])) == 1
+    out = capsys.readouterr().out
+    assert "two sides" in out and "6 views were posed by the fold" in out and "--write-larger-side" in out
+    assert not (two_way / LARGER_SIDE_NAME).exists()
+    assert cli.run(cli.CheckCaptureCommand([two_way, folded], write_larger_side=True)) == 1
+    out = capsys.readouterr().out
+    meta = json.loads((two_way / LARGER_SIDE_NAME).read_text())
+    left, right = _two_way_names()
+    assert {Path(f["file_path"]).name for f in meta["frames"]} == left
+    assert meta["nerfuser_larger_side"]["found_by"] == "matches"
+    assert {Path(f).name for f in meta["nerfuser_larger_side"]["dropped"]} == right
+    assert f"({len(left)} views, the larger side by the matches)" in out
+    assert not (folded / LARGER_SIDE_NAME).exists()  # folded all through: no side to train on
+    assert "pose the capture again" in out
+
+
 class DatasetRun:
     """A run as the registration sees it: training cameras in file order, and the folder of its dataset."""
 
@@ -206,18 +286,21 @@ class DatasetRun:
     def training_poses(self) -> np.ndarray:
         return np.tile(np.eye(4), (NUM_VIEWS, 1, 1))
 
-    def dataset_folder(self) -> Path | None:
+    def dataset_path(self) -> Path | None:
         return self.folder
 
 
-def test_registration_warns_about_a_run_whose_dataset_poses_do_not_explain_its_matches(consistent, folded):
+def test_registration_warns_about_a_run_whose_dataset_poses_do_not_explain_its_matches(consistent, folded, two_way):
     console = Console(record=True, width=400)
-    records = check_captures([DatasetRun("a", consistent), DatasetRun("b", folded), DatasetRun("c", None)], console)
+    larger = write_larger_side(two_way, _two_way_names()[1], two_way / LARGER_SIDE_NAME, "matches")
+    runs = [DatasetRun("a", consistent), DatasetRun("b", folded), DatasetRun("c", None), DatasetRun("d", larger)]
+    records = check_captures(runs, console)
     assert not records["a"]["matches"]["folded"] and records["b"]["matches"]["folded"]
+    assert not records["d"]["matches"]["folded"]  # trained on the larger side: its views alone are checked
     assert "matches" not in records["c"]  # no dataset folder: nothing to check, no warning
     text = console.export_text()
     assert "warning: NeRF b's dataset: COLMAP's reconstruction does not explain" in text
-    assert "NeRF a" not in text
+    assert "NeRF a" not in text and "NeRF d" not in text
 
 
 def test_the_benchmarks_colmap_record_carries_the_verdict(consistent, folded, tmp_path):

@@ -206,13 +206,13 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
 
 
 def _match_check(renderer: Renderer) -> MatchCheck | None:
-    """The match check of the run's dataset (:mod:`nerfuser_ns.match_check`) where the renderer names a dataset folder
-    with COLMAP's files; None otherwise (the check is a warning, never a reason to stop)."""
-    folder = getattr(renderer, "dataset_folder", lambda: None)()
-    if folder is None:
+    """The match check (:mod:`nerfuser_ns.match_check`) of the views the run trained on, where the renderer names its
+    dataset and the dataset keeps COLMAP's files; None otherwise (the check is a warning, never a reason to stop)."""
+    dataset = getattr(renderer, "dataset_path", lambda: None)()
+    if dataset is None:
         return None
     try:
-        check = check_dataset_matches(folder)
+        check = check_dataset_matches(dataset)
     except (ValueError, OSError):
         return None
     return check if check.checked else None

@@ -13,13 +13,15 @@ On repeated structure COLMAP can pose a block of a capture's views by the wrong 
 needs views filmed in sequence (file names in the order taken; a multi-camera rig's views interleaved exposure by
 exposure are checked camera by camera) and says so when the order is no sequence. A second check needs no order: it
 asks whether COLMAP's reconstruction explains the image matches COLMAP itself verified (:mod:`nerfuser_ns.match_check`,
-from the ``colmap`` folder ``ns-process-data`` leaves in the dataset). A camera whose vertical focal length
-COLMAP let drift from the horizontal one (views along one line, as from a car) stretches the capture's geometry: it
-is reported with what to run instead.
+from the ``colmap`` folder ``ns-process-data`` leaves in the dataset), and where the unexplained pairs join two
+groups of views that each explain their own, names the smaller group as the fold's side. A camera whose vertical
+focal length COLMAP let drift from the horizontal one (views along one line, as from a car) stretches the capture's
+geometry: it is reported with what to run instead.
 """
 
 from __future__ import annotations
 
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,8 +55,8 @@ class CheckCaptureCommand:
     """Dataset folders (or their transforms.json), one per capture."""
     write_larger_side: bool = False
     """For each folded capture, write ``transforms_larger_side.json`` beside its transforms.json: every frame but the
-    suspect ones (the smaller side of the fold, a consistent capture by itself). The dataset's own file is never
-    changed."""
+    smaller side of the fold (a consistent capture by itself), as the file order shows it, or, for unordered views,
+    the matches where they form two sides. The dataset's own file is never changed."""
 
     def main(self) -> int:
         """The exit status: 0 when no capture is folded or drifted, 1 when one is (or an input is bad)."""
@@ -80,21 +82,24 @@ class CheckCaptureCommand:
                               f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order "
                               f"is not a filmed sequence, nor a rig of up to {MAX_RIG_CAMERAS} cameras "
                               f"interleaved{camera_note}")  # fmt: skip
-                continue
-            warning = check.warning(str(path))
-            if warning is None:
+            elif check.warning(str(path)) is None:
                 rig = f", each of {check.rig_cameras} rig cameras" if check.rig_cameras > 1 else ""
                 CONSOLE.print(f"{path}: not folded ({check.num_views} views{rig}, median turn "
                               f"{check.median_turn_deg:.1f} deg, no turn above {FOLD_TURN_DEG:.0f} deg)"
                               f"{camera_note}")  # fmt: skip
+            else:
+                found = True
+                CONSOLE.print(f"[yellow]{check.warning(str(path))}[/]")
+                CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
+                CONSOLE.print(f"  {camera_verdict}")
+            # the file order's sides where it sees the fold, else the matches' (unordered views)
+            drop, found_by = (check.suspect, "file order") if check.folded else (matches.smaller_side(), "matches")
+            if not drop:
                 continue
-            found = True
-            CONSOLE.print(f"[yellow]{warning}[/]")
-            CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
-            CONSOLE.print(f"  {camera_verdict}")
             if self.write_larger_side:
-                out = write_larger_side(path, check, dataset_file(path).parent / LARGER_SIDE_NAME)
-                CONSOLE.print(f"  wrote {out} ({check.num_views - check.suspect_views} views): train with "
+                out = write_larger_side(path, drop, dataset_file(path).parent / LARGER_SIDE_NAME, found_by)
+                kept = len(json.loads(out.read_text())["frames"])
+                CONSOLE.print(f"  wrote {out} ({kept} views, the larger side by the {found_by}): train with "
                               f"ns-train nerfacto --data {out}")  # fmt: skip
             else:
                 CONSOLE.print("  train on its larger side (--write-larger-side: a consistent capture by itself), or "
@@ -114,6 +119,12 @@ def _report_matches(path: Path, matches: MatchCheck) -> bool:
                       "pairs)")  # fmt: skip
         return False
     CONSOLE.print(f"[yellow]{warning}[/]")
+    smaller = matches.smaller_side()
+    if smaller is not None:
+        CONSOLE.print(f"  its views form two sides, each explained by itself and joined by few pairs, mostly "
+                      f"unexplained: the smaller side's {len(smaller)} views were posed by the fold "
+                      f"({', '.join(Path(s).name for s in smaller[:12])}{', ...' if len(smaller) > 12 else ''})")
+        return True
     views = ", ".join(f"{Path(name).name} ({n})" for name, n in matches.views()[:8])
     CONSOLE.print(f"  views in the most unexplained pairs: {views}")
     CONSOLE.print("  pose the capture again (another matcher, or without those views) and check again; a run trained "

@@ -456,8 +456,10 @@ def test_training_views_render_as_the_pinhole_path(tiny_runs):
     np.testing.assert_allclose(batch.rgb, pinhole.rgb, atol=1e-5)
     assert len(renderer.training_image_files()) == len(renderer.training_poses())
     root = tiny_runs[0]
-    assert renderer.dataset_folder().resolve() == (root / "scene" / "capture_a").resolve()  # the match check reads it
-    assert NerfstudioRenderer(tiny_runs[1], data_override=root / "gone").dataset_folder() is None
+    assert renderer.dataset_path().resolve() == (root / "scene" / "capture_a").resolve()  # the match check reads it
+    assert NerfstudioRenderer(tiny_runs[1], data_override=root / "gone").dataset_path() is None
+    transforms = root / "scene" / "capture_a" / "transforms.json"  # a run trained on one transforms file: that file
+    assert NerfstudioRenderer(tiny_runs[1], data_override=transforms).dataset_path() == transforms
     rc = reference_colour(renderer, 3)
     assert (rc.colour_map is not None and rc.views == 3) or "too few" in rc.skipped
 
