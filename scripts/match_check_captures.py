@@ -5,6 +5,10 @@ Truth per capture comes from the bench records (``reports/bench_practitioner_*.j
 than 5 deg off the capture's pose tie (``pose_tie_misposed_views``); a capture with none is consistent. Captures
 without a record are listed with their verdicts and no truth.
 
+For a folded capture whose views form two sides (:func:`nerfuser_ns.match_check.fold_sides`) the larger side is scored
+against the generated scene (case folders named ``<layout>-<seed>``): the views of it more than 5 deg off the tie fitted
+to its own views (0: a consistent capture to train on).
+
 Example:
     python scripts/match_check_captures.py --cases outputs/practitioner/street-8 outputs/practitioner/row-houses-3 \\
         --records reports/bench_practitioner_street8.json reports/bench_practitioner_rowhouses3.json \\
@@ -14,17 +18,22 @@ Example:
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import tyro
 
-from nerfuser_ns.capture_check import check_dataset
+from nerfuser_ns.bench.practitioner_cases import case_layout, dataset_transforms, frame_index, misposed_frames
+from nerfuser_ns.capture_check import check_dataset, path_suffixes
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.match_check import (
     EXPLAINED_SHARE,
+    MAX_CROSS_SHARE,
     MAX_UNEXPLAINED_SHARE,
+    MIN_CROSS_UNEXPLAINED_SHARE,
     MIN_INLIERS,
     SAMPSON_PX,
     check_dataset_matches,
@@ -58,6 +67,20 @@ def misposed_by_capture(records: list[Path]) -> dict[tuple[str, str], int]:
     return out
 
 
+def larger_side_misposed(case_dir: Path, capture: str, smaller: tuple[str, ...]) -> int | None:
+    """Views of the larger side (every posed view but ``smaller``) more than 5 deg off the tie fitted to that side
+    alone, against the generated scene of a case folder named ``<layout>-<seed>``; None for other folders."""
+    match = re.fullmatch(r"([a-z-]+)-(\d+)", case_dir.name)
+    if match is None:
+        return None
+    cap = next(c for c in case_layout(f"{match[1]}:{match[2]}").captures if c.name == capture)
+    transforms = json.loads(dataset_transforms(case_dir, capture).read_text())["frames"]
+    keep = [i for i, f in enumerate(transforms) if not path_suffixes(str(f["file_path"])) & set(smaller)]
+    poses = np.array([transforms[i]["transform_matrix"] for i in keep], dtype=np.float64)
+    true = cap.c2w_world[[frame_index(transforms[i]["file_path"]) for i in keep]]
+    return int(misposed_frames(poses, true).sum())
+
+
 def main(cfg: MatchCheckCaptures) -> None:
     truth = misposed_by_capture(cfg.records)
     rows = []
@@ -68,7 +91,10 @@ def main(cfg: MatchCheckCaptures) -> None:
             seconds = time.perf_counter() - start
             order = check_dataset(dataset)
             misposed = truth.get((case.name, dataset.name))
-            rows.append({"case": case.name, "capture": dataset.name, "misposed_views": misposed,
+            smaller = matches.smaller_side()
+            side = None if smaller is None else {
+                "smaller": len(smaller), "larger_misposed": larger_side_misposed(case, dataset.name, smaller)}
+            rows.append({"case": case.name, "capture": dataset.name, "misposed_views": misposed, "sides": side,
                          "pairs": matches.pairs, "unexplained": len(matches.unexplained),
                          "share": matches.unexplained_share, "match_check_folded": matches.folded,
                          "order_check": ("folded" if order.folded else "not folded") if order.checked
@@ -85,19 +111,30 @@ def main(cfg: MatchCheckCaptures) -> None:
              f"the epipolar lines of the reconstructed poses, and a capture is folded above "
              f"{MAX_UNEXPLAINED_SHARE:.0%} unexplained pairs. *Misposed views*: the truth, views COLMAP posed more "
              "than 5 deg off the capture's pose tie (bench record; '-' without one). *Order check*: the file-order "
-             "fold check of `ns-nerfuser-check-capture`.", "",
+             "fold check of `ns-nerfuser-check-capture`. *Sides*: where a folded capture's views form two sides "
+             f"(each consistent alone, at most {MAX_CROSS_SHARE:.0%} of the pairs across, at least "
+             f"{MIN_CROSS_UNEXPLAINED_SHARE:.0%} of those unexplained; set on the captures of this table, not on a "
+             "fresh one), the smaller side's views, and the larger side's views more than 5 deg off the tie "
+             "fitted to that side (the truth: 0 is a consistent capture to train on); '-' where it found none.", "",
              "| case | capture | misposed views (truth) | verified pairs judged | unexplained | share | match check | "
-             "order check | time (s) |", "| --- | --- | ---: | ---: | ---: | ---: | --- | --- | ---: |"]  # fmt: skip
+             "sides: smaller (larger side misposed) | order check | time (s) |",
+             "| --- | --- | ---: | ---: | ---: | ---: | --- | --- | --- | ---: |"]  # fmt: skip
     for r in rows:
         truth_cell = "-" if r["misposed_views"] is None else str(r["misposed_views"])
         lines.append(f"| {r['case']} | {r['capture']} | {truth_cell} | {r['pairs']} | {r['unexplained']} | "
                      f"{100 * r['share']:.1f}% | {'folded' if r['match_check_folded'] else 'consistent'} | "
-                     f"{r['order_check']} | {r['seconds']:.2f} |")  # fmt: skip
+                     f"{_sides_cell(r['sides'])} | {r['order_check']} | {r['seconds']:.2f} |")  # fmt: skip
     lines += ["", f"Against the truth: {right} of {len(judged)} captures with a record judged right ({folded} folded, "
               f"{len(judged) - folded} consistent)."]  # fmt: skip
     write_text_atomic(cfg.output, "\n".join(lines) + "\n")
     write_text_atomic(cfg.output.with_suffix(".json"), json.dumps({"command": command, "rows": rows}, indent=2) + "\n")
     print(f"wrote {cfg.output}")
+
+
+def _sides_cell(side: dict | None) -> str:
+    if side is None:
+        return "-"
+    return f"{side['smaller']} ({'-' if side['larger_misposed'] is None else side['larger_misposed']})"
 
 
 if __name__ == "__main__":
