@@ -293,13 +293,17 @@ class DatasetRun:
 def test_registration_warns_about_a_run_whose_dataset_poses_do_not_explain_its_matches(consistent, folded, two_way):
     console = Console(record=True, width=400)
     larger = write_larger_side(two_way, _two_way_names()[1], two_way / LARGER_SIDE_NAME, "matches")
-    runs = [DatasetRun("a", consistent), DatasetRun("b", folded), DatasetRun("c", None), DatasetRun("d", larger)]
+    runs = [DatasetRun("a", consistent), DatasetRun("b", folded), DatasetRun("c", None), DatasetRun("d", larger),
+            DatasetRun("e", two_way)]  # fmt: skip
     records = check_captures(runs, console)
     assert not records["a"]["matches"]["folded"] and records["b"]["matches"]["folded"]
     assert not records["d"]["matches"]["folded"]  # trained on the larger side: its views alone are checked
     assert "matches" not in records["c"]  # no dataset folder: nothing to check, no warning
     text = console.export_text()
     assert "warning: NeRF b's dataset: COLMAP's reconstruction does not explain" in text
+    warnings = {w.split("'s dataset")[0]: w for w in " ".join(text.split()).split("warning: ")}
+    assert "pose it again" in warnings["NeRF b"]  # folded all through: no side to train on
+    assert "--write-larger-side" in warnings["NeRF e"] and "pose it again" not in warnings["NeRF e"]
     assert "NeRF a" not in text and "NeRF d" not in text
 
 
