@@ -43,6 +43,7 @@ import sqlite3
 from collections import Counter
 from collections.abc import Collection
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -105,6 +106,7 @@ class MatchCheck:
         counts = Counter(name for pair in self.unexplained for name in pair)
         return sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
 
+    @cached_property
     def smaller_side(self) -> tuple[str, ...] | None:
         """The image names of a folded capture's smaller side (:func:`fold_sides`); None when it is not folded or its
         views form no two consistent sides."""
@@ -114,7 +116,7 @@ class MatchCheck:
         return None if sides is None else sides[1]
 
     def to_record(self) -> dict:
-        smaller = self.smaller_side()
+        smaller = self.smaller_side
         return {"checked": self.checked, "pairs": self.pairs, "unexplained_pairs": len(self.unexplained),
                 "unexplained_share": round(self.unexplained_share, 4), "folded": self.folded,
                 "smaller_side": None if smaller is None else list(smaller), "reason": self.reason}  # fmt: skip

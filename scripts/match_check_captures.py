@@ -91,7 +91,7 @@ def main(cfg: MatchCheckCaptures) -> None:
             seconds = time.perf_counter() - start
             order = check_dataset(dataset)
             misposed = truth.get((case.name, dataset.name))
-            smaller = matches.smaller_side()
+            smaller = matches.smaller_side
             side = None if smaller is None else {
                 "smaller": len(smaller), "larger_misposed": larger_side_misposed(case, dataset.name, smaller)}
             rows.append({"case": case.name, "capture": dataset.name, "misposed_views": misposed, "sides": side,

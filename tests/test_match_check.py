@@ -234,7 +234,7 @@ def _two_way_names() -> tuple[set[str], set[str]]:
 def test_two_groups_joined_by_unexplained_pairs_are_the_folds_sides(two_way):
     check = check_dataset_matches(two_way)
     left, right = _two_way_names()
-    assert check.folded and set(check.smaller_side()) == right
+    assert check.folded and set(check.smaller_side) == right
     assert set(check.to_record()["smaller_side"]) == right
     assert fold_sides(check.explained[::-1], check.unexplained[::-1]) == (tuple(sorted(left)), tuple(sorted(right)))
     # checked on the views of the larger side alone (what a run trained on it saw): nothing unexplained
@@ -245,7 +245,7 @@ def test_two_groups_joined_by_unexplained_pairs_are_the_folds_sides(two_way):
 
 
 def test_no_sides_where_the_fold_runs_through_the_capture_or_the_sides_share_many_pairs(folded):
-    assert check_dataset_matches(folded).folded and check_dataset_matches(folded).smaller_side() is None
+    assert check_dataset_matches(folded).folded and check_dataset_matches(folded).smaller_side is None
     a = [(f"a{i}", f"a{j}") for i in range(8) for j in range(i + 1, 8)]  # 28 pairs within each group
     b = [(f"b{i}", f"b{j}") for i in range(6) for j in range(i + 1, 6)]
     bridge = [("a0", "b0"), ("a1", "b1")]

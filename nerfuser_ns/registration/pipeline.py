@@ -193,7 +193,7 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
             warning = matches.warning(f"NeRF {r.name}'s dataset")
             if warning is not None:
                 mend = ("train on its larger side (ns-nerfuser-check-capture --write-larger-side: its views form two "
-                        "sides)" if matches.smaller_side() is not None else "pose it again")  # fmt: skip
+                        "sides)" if matches.smaller_side is not None else "pose it again")  # fmt: skip
                 console.print(f"[yellow]warning: {warning}. The run was trained on those poses and no registration "
                               f"mends that: check its dataset with ns-nerfuser-check-capture and {mend} "
                               "(docs/your_own_captures.md)[/]")  # fmt: skip

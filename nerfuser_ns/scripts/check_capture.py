@@ -93,7 +93,7 @@ class CheckCaptureCommand:
                 CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
                 CONSOLE.print(f"  {camera_verdict}")
             # the file order's sides where it sees the fold, else the matches' (unordered views)
-            drop, found_by = (check.suspect, "file order") if check.folded else (matches.smaller_side(), "matches")
+            drop, found_by = (check.suspect, "file order") if check.folded else (matches.smaller_side, "matches")
             if not drop:
                 continue
             if self.write_larger_side:
@@ -119,7 +119,7 @@ def _report_matches(path: Path, matches: MatchCheck) -> bool:
                       "pairs)")  # fmt: skip
         return False
     CONSOLE.print(f"[yellow]{warning}[/]")
-    smaller = matches.smaller_side()
+    smaller = matches.smaller_side
     if smaller is not None:
         CONSOLE.print(f"  its views form two sides, each explained by itself and joined by few pairs, mostly "
                       f"unexplained: the smaller side's {len(smaller)} views were posed by the fold "
