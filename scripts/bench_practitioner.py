@@ -735,9 +735,11 @@ def _capture_check_cell(c: dict) -> str:
     if side is not None:
         return (f"folded (by the {side.get('found_by', 'file order')}), {len(side['dropped'])} of {c['num_views']} "
                 "views dropped, trained on the larger side")  # fmt: skip
+    # records of before the match check: the stage wrote the larger side of every capture the file order folded
+    trained = ", trained on the larger side" if "larger_side" not in c else ""
     order = ("not checked by file order (no sequence)" if not c["checked"] else
-             f"folded by file order, {c['suspect_views']} of {c['num_views']} views suspect" if c["folded"] else
-             "not folded by file order")  # fmt: skip
+             f"folded by file order, {c['suspect_views']} of {c['num_views']} views suspect{trained}" if c["folded"]
+             else "not folded by file order")  # fmt: skip
     matches = c.get("matches")
     if not matches or not matches["checked"]:
         return order

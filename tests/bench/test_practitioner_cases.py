@@ -267,3 +267,20 @@ def test_each_refused_attempt_is_scored_against_the_truth(load_script):
     (e,) = refused["errors"]
     assert e["nerf"] == "b" and e["r_err_deg"] == pytest.approx(2.0) and not e["failure"]
     assert failed["errors"] is None and bench._attempts(None, 0, gt) == []
+
+
+def test_the_capture_check_line_says_which_check_found_the_fold(load_script):
+    bench = load_script("bench_practitioner")
+    order = {"checked": True, "folded": True, "suspect_views": 20, "num_views": 64}  # a record of before the matches
+    assert bench._capture_check_cell(order) == (
+        "folded by file order, 20 of 64 views suspect, trained on the larger side")
+    unordered = {"checked": False, "folded": False, "suspect_views": 0, "num_views": 64}
+    side = {"found_by": "matches", "dropped": [f"images/frame_{i:05d}.png" for i in range(24)]}
+    assert bench._capture_check_cell({**unordered, "larger_side": side}) == (
+        "folded (by the matches), 24 of 64 views dropped, trained on the larger side")
+    folded = {"checked": True, "folded": True}
+    assert bench._capture_check_cell({**unordered, "matches": folded, "larger_side": None}).endswith(
+        "folded by the match check, no sides to train on: trained on every view")
+    consistent = {"checked": True, "folded": False}
+    assert bench._capture_check_cell({**unordered, "matches": consistent}) == (
+        "not checked by file order (no sequence); the match check found it consistent")
