@@ -236,6 +236,31 @@ def test_registration_warns_about_a_run_trained_on_a_folded_capture(room_poses):
     assert checks["east"]["folded"] and checks["east"]["suspect_views"] == 20 and not checks["west"]["folded"]
 
 
+class _RunWithDataset(_TrainedRun):
+    def __init__(self, name: str, poses: np.ndarray, dataset: Path):
+        super().__init__(name, poses)
+        self._dataset = dataset
+
+    def dataset_path(self) -> Path:
+        return self._dataset
+
+
+def test_registration_checks_the_file_the_run_was_given_as_the_cli_does(room_poses, tmp_path):
+    """The dataset's frames in file order decide, not the training cameras (nerfstudio's held-out frames leave gaps
+    in them); runs without a readable dataset file fall back to their training cameras."""
+    console = Console(record=True, width=400)
+    folded = _write_dataset(tmp_path / "folded", _fold(room_poses), _names(64))
+    clean = _write_dataset(tmp_path / "clean", room_poses, _names(64))
+    runs = [_RunWithDataset("a", room_poses, folded), _RunWithDataset("b", _fold(room_poses), clean),
+            _RunWithDataset("c", _fold(room_poses), tmp_path / "gone")]  # fmt: skip
+    checks = check_captures(runs, console)
+    assert checks["a"]["folded"] and checks["a"]["suspect_views"] == 20
+    assert not checks["b"]["folded"]
+    assert checks["c"]["folded"]  # no dataset file: the training cameras
+    text = console.export_text()
+    assert "NeRF a" in text and "NeRF b" not in text and "NeRF c" in text
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # The camera check: COLMAP's vertical focal length drifted from the horizontal one
 

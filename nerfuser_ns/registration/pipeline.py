@@ -27,7 +27,7 @@ import numpy as np
 from rich.console import Console
 
 from nerfuser_ns import sim3
-from nerfuser_ns.capture_check import SQUARE_PIXEL_ADVICE, fold_check, intrinsics_check
+from nerfuser_ns.capture_check import SQUARE_PIXEL_ADVICE, FoldCheck, check_dataset, fold_check, intrinsics_check
 from nerfuser_ns.match_check import MatchCheck, check_dataset_matches
 from nerfuser_ns.registration.assemble import build_known_geometry_result, build_result
 from nerfuser_ns.registration.colocated import refine_colocated
@@ -163,11 +163,12 @@ def resolve_sampling(renderers: Sequence[Renderer], config: RegistrationConfig) 
 
 
 def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) -> dict | None:
-    """The fold check and the camera check (:mod:`nerfuser_ns.capture_check`) of each run's training cameras in file
-    order, and the match check (:mod:`nerfuser_ns.match_check`) of its dataset's COLMAP files, per NeRF name (the fold
-    check's record with the camera's under ``camera`` and the match check's under ``matches``; None when no renderer
-    knows its training images); a folded or drifted capture is warned about: its run was trained on those poses, which
-    no registration mends."""
+    """The fold check (of the run's dataset file in file order where the renderer names it, else of its training
+    cameras) and the camera check (:mod:`nerfuser_ns.capture_check`), and the match check
+    (:mod:`nerfuser_ns.match_check`) of its dataset's COLMAP files, per NeRF name (the fold check's record with the
+    camera's under ``camera`` and the match check's under ``matches``; None when no renderer knows its training
+    images); a folded or drifted capture is warned about: its run was trained on those poses, which no registration
+    mends."""
     out = {}
     for r in renderers:
         files = getattr(r, "training_image_files", None)
@@ -180,7 +181,7 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
             continue
         if poses is None or len(poses) != len(names):
             continue
-        check = fold_check(poses, names)
+        check = _dataset_fold_check(r) or fold_check(poses, names)
         out[r.name] = check.to_record()
         warning = check.warning(f"NeRF {r.name}")
         if warning is not None:
@@ -205,6 +206,20 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
                 console.print(f"[yellow]warning: {warning}. The run was trained on that camera: {SQUARE_PIXEL_ADVICE} "
                               "before training (docs/your_own_captures.md)[/]")  # fmt: skip
     return out or None
+
+
+def _dataset_fold_check(renderer: Renderer) -> FoldCheck | None:
+    """The file-order fold check of every frame of the transforms file the run was given, as
+    ``ns-nerfuser-check-capture`` checks it; None where the renderer names no such file. Not the training cameras
+    alone: nerfstudio holds out every tenth frame or so for evaluation, and the gaps can make an unordered capture's
+    file order look like a rig's sequences (measured on street-8's larger side: a fold reported at lag 10)."""
+    dataset = getattr(renderer, "dataset_path", lambda: None)()
+    if dataset is None:
+        return None
+    try:
+        return check_dataset(dataset)
+    except (ValueError, OSError):
+        return None
 
 
 def _match_check(renderer: Renderer) -> MatchCheck | None:
