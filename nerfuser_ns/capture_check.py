@@ -361,9 +361,9 @@ def write_larger_side(
         raise ValueError(f"{output}: the dataset's own transforms.json; write the larger side to another file")
     meta = json.loads(file.read_text())
     drop = set(drop)
-    kept = [f for f in meta["frames"] if not path_suffixes(str(f["file_path"])) & drop]
-    dropped = sorted(str(f["file_path"]) for f in meta["frames"] if path_suffixes(str(f["file_path"])) & drop)
-    meta["frames"] = kept
+    is_dropped = [bool(path_suffixes(str(f["file_path"])) & drop) for f in meta["frames"]]
+    dropped = sorted(str(f["file_path"]) for f, d in zip(meta["frames"], is_dropped, strict=True) if d)
+    meta["frames"] = [f for f, d in zip(meta["frames"], is_dropped, strict=True) if not d]
     meta.pop("ply_file_path", None)
     meta["nerfuser_larger_side"] = {"source": file.name, "found_by": found_by, "dropped": dropped}
     # nerfstudio resolves file paths against the json's folder: keep them valid wherever the copy is written

@@ -181,14 +181,15 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
             continue
         if poses is None or len(poses) != len(names):
             continue
-        check = _dataset_fold_check(r) or fold_check(poses, names)
+        dataset = getattr(r, "dataset_path", lambda: None)()  # optional (Renderer.training_poses)
+        check = _dataset_fold_check(dataset) or fold_check(poses, names)
         out[r.name] = check.to_record()
         warning = check.warning(f"NeRF {r.name}")
         if warning is not None:
             console.print(f"[yellow]warning: {warning}. The run was trained on those poses and no registration mends "
                           "that: check its dataset with ns-nerfuser-check-capture, pose it again or train on its "
                           "larger side (docs/your_own_captures.md)[/]")  # fmt: skip
-        matches = _match_check(r)
+        matches = _match_check(dataset)
         if matches is not None:
             out[r.name]["matches"] = matches.to_record()
             warning = matches.warning(f"NeRF {r.name}'s dataset")
@@ -208,12 +209,11 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
     return out or None
 
 
-def _dataset_fold_check(renderer: Renderer) -> FoldCheck | None:
-    """The file-order fold check of every frame of the transforms file the run was given, as
+def _dataset_fold_check(dataset: Path | None) -> FoldCheck | None:
+    """The file-order fold check of every frame of the transforms file the run was given (``dataset``), as
     ``ns-nerfuser-check-capture`` checks it; None where the renderer names no such file. Not the training cameras
     alone: nerfstudio holds out every tenth frame or so for evaluation, and the gaps can make an unordered capture's
     file order look like a rig's sequences (measured on street-8's larger side: a fold reported at lag 10)."""
-    dataset = getattr(renderer, "dataset_path", lambda: None)()
     if dataset is None:
         return None
     try:
@@ -222,10 +222,10 @@ def _dataset_fold_check(renderer: Renderer) -> FoldCheck | None:
         return None
 
 
-def _match_check(renderer: Renderer) -> MatchCheck | None:
+def _match_check(dataset: Path | None) -> MatchCheck | None:
     """The match check (:mod:`nerfuser_ns.match_check`) of the views the run trained on, where the renderer names its
-    dataset and the dataset keeps COLMAP's files; None otherwise (the check is a warning, never a reason to stop)."""
-    dataset = getattr(renderer, "dataset_path", lambda: None)()
+    dataset (``dataset``) and the dataset keeps COLMAP's files; None otherwise (the check is a warning, never a reason
+    to stop)."""
     if dataset is None:
         return None
     try:

@@ -82,14 +82,14 @@ class CheckCaptureCommand:
                               f"{check.median_turn_deg:.0f} deg (above {SEQUENCE_STEP_DEG:.0f}), so the file order "
                               f"is not a filmed sequence, nor a rig of up to {MAX_RIG_CAMERAS} cameras "
                               f"interleaved{camera_note}")  # fmt: skip
-            elif check.warning(str(path)) is None:
+            elif (fold_warning := check.warning(str(path))) is None:
                 rig = f", each of {check.rig_cameras} rig cameras" if check.rig_cameras > 1 else ""
                 CONSOLE.print(f"{path}: not folded ({check.num_views} views{rig}, median turn "
                               f"{check.median_turn_deg:.1f} deg, no turn above {FOLD_TURN_DEG:.0f} deg)"
                               f"{camera_note}")  # fmt: skip
             else:
                 found = True
-                CONSOLE.print(f"[yellow]{check.warning(str(path))}[/]")
+                CONSOLE.print(f"[yellow]{fold_warning}[/]")
                 CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
                 CONSOLE.print(f"  {camera_verdict}")
             # the file order's sides where it sees the fold, else the matches' (unordered views)
