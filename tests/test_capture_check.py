@@ -215,6 +215,9 @@ def test_cli_bad_input_is_one_line_and_writes_nothing(room_poses, tmp_path, caps
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and fragment in err and str(bad) in err
     assert not (folded / LARGER_SIDE_NAME).exists()  # every input is read before anything is written
+    assert cli.run(cli.CheckCaptureCommand([])) == 1  # nothing to check is not "nothing folded"
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no dataset" in err
 
 
 class _TrainedRun:

@@ -60,6 +60,9 @@ class CheckCaptureCommand:
 
     def main(self) -> int:
         """The exit status: 0 when no capture is folded or drifted, 1 when one is (or an input is bad)."""
+        if not self.data:
+            raise ValueError("no dataset given: pass the folders ns-process-data wrote (or their transforms.json), "
+                             "e.g. ns-nerfuser-check-capture data/part_a data/part_b")
         found = False
         # every input read before anything is written
         checks = [(path, check_dataset(path), check_dataset_intrinsics(path), check_dataset_matches(path))
