@@ -15,6 +15,7 @@ from typing import Literal
 import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import DataManager, VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
@@ -22,6 +23,7 @@ from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIndicesEvalDataloader
 from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from nerfuser_ns.blend_settings import BlendSettings
@@ -152,6 +154,45 @@ def render_cameras_dataparser_outputs(spec: FusionSpec, metadata: dict) -> Datap
     return None
 
 
+def export_cameras(spec: FusionSpec) -> tuple[Cameras, list[str]]:
+    """Every fused NeRF's training cameras in the common frame, where each NeRF was trained to render (the rays
+    ``ns-export pointcloud`` samples): those the registration file carries (camera-optimiser corrections applied),
+    else those of the run's dataset, as pinholes (a ray is a ray; no image is compared). Also the names of the NeRFs
+    with neither; FusionSpecError when no NeRF has any."""
+    poses, intrinsics, missing = [], [], []
+    for entry in spec.nerfs:
+        if entry.training_cameras is not None:
+            c2w, intr = entry.training_cameras.c2w, entry.training_cameras.intrinsics
+        else:
+            try:
+                cams = training_cameras(entry.config_path)
+            except RunLoadError:
+                missing.append(entry.name)
+                continue
+            c2w = cams.camera_to_worlds.detach().cpu().numpy().astype(np.float64)
+            intr = torch.cat([cams.fx, cams.fy, cams.cx, cams.cy, cams.width, cams.height], dim=-1).double().numpy()
+        poses.append(transform_poses(entry.nerf_to_common, c2w)[..., :3, :4])
+        intrinsics.append(np.broadcast_to(intr, (len(c2w), 6)))
+    if not poses:
+        raise spec_error(spec.spec_path, "no fused NeRF has training cameras to sample rays from (the registration "
+                                         "file records none and no run's dataset is readable): register the runs "
+                                         "again with their datasets in place")  # fmt: skip
+    c2w_all = torch.tensor(np.concatenate(poses), dtype=torch.float32)
+    k = torch.tensor(np.concatenate(intrinsics), dtype=torch.float32)
+    cameras = Cameras(camera_to_worlds=c2w_all, fx=k[:, 0:1], fy=k[:, 1:2], cx=k[:, 2:3], cy=k[:, 3:4],
+                      width=k[:, 4:5].round().long(), height=k[:, 5:6].round().long(),
+                      camera_type=CameraType.PERSPECTIVE)  # fmt: skip
+    return cameras, missing
+
+
+@dataclass
+class RayBatchSize:
+    """The datamanager's ``train_pixel_sampler``: ``ns-export`` sets ``num_rays_per_batch`` on it (nerfuser samples
+    the rays itself, :meth:`NerfuserDataManager.next_train`)."""
+
+    num_rays_per_batch: int = 4096
+
+
 def placeholder_dataparser_outputs(spec: FusionSpec, metadata: dict) -> DataparserOutputs:
     """One small camera per NeRF, at its origin looking along its -z axis (stand-ins for the viewer)."""
     n = len(spec.nerfs)
@@ -212,7 +253,8 @@ class NerfuserDataManager(VanillaDataManager):
     dataset; without either, placeholder cameras at the NeRF origins (for the viewer only) and no eval dataset.
 
     A :class:`VanillaDataManager` only because ``ns-render spiral`` asserts one; none of its set-up runs (its
-    ``__init__`` parses a dataset and builds ray samplers).
+    ``__init__`` parses a dataset and builds ray samplers). Its "training" rays are random rays of every fused NeRF's
+    training cameras (:meth:`next_train`): what ``ns-export pointcloud`` turns into points.
     """
 
     config: NerfuserDataManagerConfig
@@ -248,6 +290,8 @@ class NerfuserDataManager(VanillaDataManager):
             self.train_dataset = PlaceholderImageDataset(self.train_dataparser_outputs)
             self.eval_dataset = None
         DataManager.__init__(self)  # not VanillaDataManager's (see the class docstring)
+        self.train_pixel_sampler = RayBatchSize()
+        self._ray_generator = torch.Generator().manual_seed(0)  # on the CPU: the same rays on every device
 
     def setup_train(self) -> None:
         """Nothing to set up: the method does not train."""
@@ -289,11 +333,28 @@ class NerfuserDataManager(VanillaDataManager):
             self.setup_eval()
         return self._fixed_indices_eval_dataloader
 
-    def next_train(self, step: int) -> tuple[Cameras, dict]:
-        raise RuntimeError(
-            "nerfuser has nothing to train (the sub-models are frozen): run ns-train nerfuser with "
-            "--max-num-iterations 0 (its default)"
-        )
+    @functools.cached_property
+    def export_cameras(self) -> Cameras:
+        """Every fused NeRF's training cameras in the common frame (:func:`export_cameras`), on the device; the NeRFs
+        without any are named once. A cached property (skipped by the viewer, see below)."""
+        cameras, missing = export_cameras(self.spec)
+        if missing:
+            CONSOLE.print(f"[yellow]nerfuser: no training cameras for {', '.join(missing)} (not in the registration "
+                          "file, dataset gone): their rays are left out[/]")  # fmt: skip
+        return cameras.to(self.device)
+
+    def next_train(self, step: int) -> tuple[RayBundle, dict]:
+        """``train_pixel_sampler.num_rays_per_batch`` random rays of the fused NeRFs' training cameras in the common
+        frame (``ns-export pointcloud`` reads these), each through a uniform point of a uniformly drawn camera's
+        image; ``indices`` (camera, row, column) as nerfstudio's. Seeded once: the same calls give the same rays.
+        Nothing trains on them (``ns-train nerfuser`` runs no iteration)."""
+        cams, n, g = self.export_cameras, int(self.train_pixel_sampler.num_rays_per_batch), self._ray_generator
+        cam = torch.randint(len(cams), (n,), generator=g)
+        size = torch.cat([cams.height, cams.width], dim=-1).detach().cpu()[cam].float()  # [n, 2]: rows, columns
+        coords = torch.rand((n, 2), generator=g) * size
+        cam, coords = cam.to(self.device), coords.to(self.device)
+        bundle = cams.generate_rays(camera_indices=cam.unsqueeze(-1), coords=coords)
+        return bundle, {"indices": torch.cat([cam.unsqueeze(-1), coords.long()], dim=-1)}
 
     def next_eval(self, step: int) -> tuple[Cameras, dict]:
         return self.next_eval_image(step)
@@ -308,7 +369,7 @@ class NerfuserDataManager(VanillaDataManager):
         raise ValueError("no more eval images")
 
     def get_train_rays_per_batch(self) -> int:
-        return 1
+        return int(self.train_pixel_sampler.num_rays_per_batch)
 
     def get_eval_rays_per_batch(self) -> int:
         return 1
@@ -332,6 +393,9 @@ class NerfuserTrainerConfig(TrainerConfig):
     def save_config(self) -> None:
         data = self.data or self.pipeline.datamanager.data
         datamanager = self.pipeline.datamanager
+        if self.max_num_iterations > 0:  # next_train's rays carry no images to train on
+            raise SystemExit("nerfuser: nothing to train (the sub-models are frozen): run ns-train nerfuser with "
+                             f"--max-num-iterations 0 (its default), not {self.max_num_iterations}")
         try:
             if isinstance(self.pipeline.model, NerfuserModelConfig):
                 BlendSettings.from_config(self.pipeline.model)  # bad gamma / tau / NERFUSER_* values

@@ -526,6 +526,13 @@ class NerfuserModel(Model):
             self._cameras_on[device] = [None if c is None else c.to(device) for c in self.nerf_cameras]
         return [self._cameras_on[device][i] for i in ids]  # type: ignore[misc]
 
+    def get_rgba_image(self, outputs: dict[str, Tensor], output_name: str = "rgb") -> Tensor:
+        """The blend's colour with its accumulation as alpha (nerfstudio's default, for a background other than
+        "random", is an alpha of 1): ``ns-export pointcloud`` keeps the rays above 0.5, those that end on a surface
+        of the fused NeRFs rather than in their backgrounds; ``ns-render --rendered-output-names rgba`` shows it."""
+        accumulation = outputs[output_name.replace("rgb", "accumulation", 1)]
+        return torch.cat([outputs[output_name], accumulation.reshape(*outputs[output_name].shape[:-1], 1)], dim=-1)
+
     # --- evaluation -------------------------------------------------------------------------------------------------
 
     def _metrics(self, gt: Tensor, pred: Tensor) -> dict[str, float]:

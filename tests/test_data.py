@@ -312,11 +312,85 @@ def test_datamanager_poses_test_images_in_the_common_frame(tmp_path, two_runs):
     assert len(cams) == 3 and cams[2][1]["image"].shape == (6, 8, 3)
     camera, batch = dm.next_eval_image(0)
     assert batch["image"].shape == (6, 8, 3)
-    with pytest.raises(RuntimeError, match="nothing to train"):
-        dm.next_train(0)
     # the scene box holds both NeRFs' [-1, 1] cubes
     aabb = dm.train_dataset.scene_box.aabb
     assert torch.all(aabb[0] <= torch.tensor([-1.0, -1.0, -1.0])) and torch.all(aabb[1] >= torch.tensor(1.0))
+
+
+def test_export_rays_are_every_nerfs_training_camera_rays_in_the_common_frame(tmp_path):
+    """``ns-export pointcloud`` turns the datamanager's "training" rays into points: random rays of every fused NeRF's
+    training cameras (the registration file's, else the run's dataset's), in the common frame, the same every run."""
+    a_poses = [sim3.make_sim3(scene_yaw(0.3 * i), np.array([0.2 * i, 0.0, 1.5]), 1.0) for i in range(4)]
+    a = fake_run(tmp_path / "outputs", "a", write_dataset(tmp_path / "data_a", a_poses))
+    b = fake_run(tmp_path / "outputs", "b")  # no dataset: its cameras come from the registration file
+    b_c2w = np.stack([sim3.make_sim3(scene_yaw(-0.2 * i), np.array([0.0, 0.3 * i, 2.0]), 1.0) for i in range(3)])
+    b_intr = np.array([[5.0, 6.0, 3.0, 2.5, 6, 5]] * 3)
+    registration_file(tmp_path / "registration.json", [
+        {"config": str(a), "transform": np.eye(4).tolist()},
+        {"config": str(b), "transform": T_B.tolist(),
+         "training_cameras": {"c2w": b_c2w[:, :3].tolist(), "intrinsics": b_intr.tolist()}}])  # fmt: skip
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], registration="registration.json")
+
+    def rays(n: int) -> tuple:
+        dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="inference")
+        dm.train_pixel_sampler.num_rays_per_batch = n  # as ns-export sets it
+        assert dm.get_train_rays_per_batch() == n
+        return dm.next_train(0)
+
+    bundle, batch = rays(600)
+    assert bundle.shape == (600,) and batch["indices"].shape == (600, 3)
+    a_cams = runs.training_cameras(a)  # run a's dataset, in its NeRF frame (the common frame: identity)
+    a_c2w = a_cams.camera_to_worlds.double().numpy()
+    cam_c2w = np.concatenate([a_c2w, sim3.transform_poses(T_B, b_c2w)[:, :3]])  # scale 0.4 into the positions
+    a_intr = torch.cat([a_cams.fx, a_cams.fy, a_cams.cx, a_cams.cy, a_cams.width, a_cams.height], -1).double().numpy()
+    intr = np.concatenate([a_intr, b_intr])
+    cam, row, col = (batch["indices"][:, i].numpy() for i in range(3))
+    assert set(np.unique(cam)) == set(range(7))  # every camera of both NeRFs
+    o, d = bundle.origins.double().numpy(), bundle.directions.double().numpy()
+    np.testing.assert_allclose(o, cam_c2w[cam, :, 3], atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-5)
+    # each ray passes through the pixel it names, in the camera it names (OpenGL axes: the camera looks along -z)
+    p = np.einsum("nji,nj->ni", cam_c2w[cam, :, :3], d)
+    fx, fy, cx, cy = (intr[cam, i] for i in range(4))
+    u, v = cx + fx * p[:, 0] / -p[:, 2], cy - fy * p[:, 1] / -p[:, 2]
+    assert (p[:, 2] < 0).all()
+    np.testing.assert_array_equal(np.floor(u + 1e-4), col)  # the drawn point lies inside the named pixel
+    np.testing.assert_array_equal(np.floor(v + 1e-4), row)
+    assert (col < intr[cam, 4]).all() and (row < intr[cam, 5]).all()
+    again, _ = rays(600)  # seeded once per datamanager: the same rays
+    torch.testing.assert_close(again.directions, bundle.directions)
+
+
+def test_export_cameras_name_the_nerfs_without_any_and_refuse_when_none_has(tmp_path):
+    a_poses = [sim3.make_sim3(scene_yaw(0.3 * i), np.array([0.2 * i, 0.0, 1.5]), 1.0) for i in range(3)]
+    a = fake_run(tmp_path / "outputs", "a", write_dataset(tmp_path / "data_a", a_poses))
+    gone = fake_run(tmp_path / "outputs", "gone", tmp_path / "no_such_dataset")
+    also_gone = fake_run(tmp_path / "outputs", "also_gone", tmp_path / "no_such_dataset")
+    entries = [{"name": n, "config": str(c), "transform": np.eye(4).tolist()} for n, c in (("a", a), ("g", gone))]
+    registration_file(tmp_path / "registration.json", entries)
+    spec = read_fusion_spec(fspec.write_fusion_spec(tmp_path / "fusion.json", [a, gone], "registration.json"))
+    cameras, missing = fdata.export_cameras(spec)
+    assert len(cameras) == 3 and missing == ["g"]
+    entries = [{"name": n, "config": str(c), "transform": np.eye(4).tolist()} for n, c in (("g", gone),
+                                                                                            ("h", also_gone))]
+    registration_file(tmp_path / "none.json", entries)
+    spec = read_fusion_spec(fspec.write_fusion_spec(tmp_path / "none_fusion.json", [gone, also_gone], "none.json"))
+    with pytest.raises(FusionSpecError, match="no fused NeRF has training cameras") as e:
+        fdata.export_cameras(spec)
+    assert "\n" not in str(e.value)
+
+
+def test_ns_train_nerfuser_refuses_iterations_before_writing(tmp_path, two_runs):
+    a, b = two_runs
+    registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
+                                                       {"config": str(b), "transform": T_B.tolist()}])  # fmt: skip
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b], registration="registration.json")
+    config = nerfuser_config()
+    config.data, config.output_dir, config.max_num_iterations = spec, tmp_path / "out", 5
+    config.set_timestamp()
+    with pytest.raises(SystemExit, match="nothing to train .* not 5"):
+        config.save_config()
+    assert not (tmp_path / "out").exists()
 
 
 def test_test_images_with_applied_transform_keep_their_stored_poses(tmp_path, two_runs):
