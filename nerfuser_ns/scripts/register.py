@@ -131,7 +131,7 @@ def camera_optimizer_tip(renderers: list) -> str | None:
         return None
     return (f"tip: {', '.join(short_names(names).values())} trained with a camera optimiser, which moves each NeRF "
             "off its dataset's poses; where the captures are posed well (a clean COLMAP run), runs trained with "
-            "--pipeline.model.camera-optimizer.mode off registered 2-5x more accurately on our generated captures "
+            "--pipeline.model.camera-optimizer.mode off registered 1.5-5x closer in rotation on our generated captures "
             "(docs/your_own_captures.md, \"Training for fusion\")")  # fmt: skip
 
 
