@@ -530,7 +530,10 @@ class NerfuserModel(Model):
         """The blend's colour with its accumulation as alpha (nerfstudio's default, for a background other than
         "random", is an alpha of 1): ``ns-export pointcloud`` keeps the rays above 0.5, those that end on a surface
         of the fused NeRFs rather than in their backgrounds; ``ns-render --rendered-output-names rgba`` shows it."""
-        accumulation = outputs[output_name.replace("rgb", "accumulation", 1)]
+        accumulation_name = output_name.replace("rgb", "accumulation", 1)
+        if accumulation_name not in outputs:  # e.g. rgb_<method> of render_all_methods: as nerfstudio's Model says
+            raise NotImplementedError(f"nerfuser: no {accumulation_name} output to give {output_name} an alpha")
+        accumulation = outputs[accumulation_name]
         return torch.cat([outputs[output_name], accumulation.reshape(*outputs[output_name].shape[:-1], 1)], dim=-1)
 
     # --- evaluation -------------------------------------------------------------------------------------------------

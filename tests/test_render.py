@@ -179,6 +179,8 @@ def test_ns_export_pointcloud_exports_the_fused_scene_from_every_nerfs_cameras(f
     alpha = pipeline.model.get_rgba_image(outputs)[:, 3]
     torch.testing.assert_close(alpha, outputs["accumulation"][:, 0])  # not nerfstudio's alpha of 1 everywhere
     keep = alpha > 0.5
+    with pytest.raises(NotImplementedError, match="accumulation_idw_sample"):  # an output without its own alpha
+        pipeline.model.get_rgba_image({**outputs, "rgb_idw_sample": outputs["rgb"]}, "rgb_idw_sample")
     expected = (bundle.origins + bundle.directions * outputs["depth"])[keep].double().numpy()
     np.testing.assert_allclose(points[: len(expected)], expected, atol=1e-4)
     # ns-export's default --normal-method model_output probes the model with one ray and stops with its own advice

@@ -181,7 +181,7 @@ def check_captures(renderers: Sequence[Renderer], console: Console = CONSOLE) ->
             continue
         if poses is None or len(poses) != len(names):
             continue
-        dataset = getattr(r, "dataset_path", lambda: None)()  # optional (Renderer.training_poses)
+        dataset = getattr(r, "dataset_path", lambda: None)()  # optional: a renderer without a dataset file has none
         check = _dataset_fold_check(dataset) or fold_check(poses, names)
         out[r.name] = check.to_record()
         warning = check.warning(f"NeRF {r.name}")
