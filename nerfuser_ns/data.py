@@ -133,33 +133,12 @@ class PlaceholderImageDataset(InputDataset):
         return {"image_idx": image_idx, "image": image}
 
 
-def render_cameras_dataparser_outputs(spec: FusionSpec, metadata: dict) -> DataparserOutputs | None:
-    """Cameras to render a fused run from when its spec has no test images (``ns-render spiral``/``interpolate``/
-    ``dataset``, the viewer's camera frustums): the training cameras of the first NeRF whose dataset is still
-    readable (the reference NeRF's, normally), mapped into the common frame, without images (named
-    ``<nerf name>/train_00000`` ...). None when no NeRF's dataset is readable."""
-    for entry in spec.nerfs:
-        try:
-            cameras = training_cameras(entry.config_path)
-        except RunLoadError:
-            continue
-        return DataparserOutputs(
-            image_filenames=[Path(f"<{entry.name}>") / f"train_{i:05d}" for i in range(len(cameras))],
-            cameras=_transform_cameras(cameras, entry.nerf_to_common),
-            scene_box=fused_scene_box(spec),
-            metadata=metadata,
-            dataparser_transform=torch.eye(4)[:3],
-            dataparser_scale=1.0,
-        )
-    return None
-
-
-def export_cameras(spec: FusionSpec) -> tuple[Cameras, list[str]]:
-    """Every fused NeRF's training cameras in the common frame, where each NeRF was trained to render (the rays
-    ``ns-export pointcloud`` samples): those the registration file carries (camera-optimiser corrections applied),
-    else those of the run's dataset, as pinholes (a ray is a ray; no image is compared). Also the names of the NeRFs
-    with neither; FusionSpecError when no NeRF has any."""
-    poses, intrinsics, missing = [], [], []
+def nerf_training_cameras(spec: FusionSpec) -> tuple[list[tuple[str, np.ndarray, np.ndarray]], list[str]]:
+    """Every fused NeRF's training cameras in the common frame, where each NeRF was trained to render: per NeRF that
+    has any, its name, their poses ``[N, 3, 4]`` and pinhole intrinsics ``[N, 6]`` (fx, fy, cx, cy, width, height);
+    those the registration file carries (camera-optimiser corrections applied), else those of the run's dataset
+    (distortion left out: a ray is a ray, no image is compared). Also the names of the NeRFs with neither."""
+    found, missing = [], []
     for entry in spec.nerfs:
         if entry.training_cameras is not None:
             c2w, intr = entry.training_cameras.c2w, entry.training_cameras.intrinsics
@@ -171,18 +150,47 @@ def export_cameras(spec: FusionSpec) -> tuple[Cameras, list[str]]:
                 continue
             c2w = cams.camera_to_worlds.detach().cpu().numpy().astype(np.float64)
             intr = torch.cat([cams.fx, cams.fy, cams.cx, cams.cy, cams.width, cams.height], dim=-1).double().numpy()
-        poses.append(transform_poses(entry.nerf_to_common, c2w)[..., :3, :4])
-        intrinsics.append(np.broadcast_to(intr, (len(c2w), 6)))
-    if not poses:
+        found.append((entry.name, transform_poses(entry.nerf_to_common, c2w)[..., :3, :4],
+                      np.broadcast_to(intr, (len(c2w), 6))))  # fmt: skip
+    return found, missing
+
+
+def _pinholes(found: list[tuple[str, np.ndarray, np.ndarray]]) -> Cameras:
+    """One :class:`Cameras` of the pinholes :func:`nerf_training_cameras` found, in its order (on the CPU)."""
+    c2w = torch.tensor(np.concatenate([c for _, c, _ in found]), dtype=torch.float32)
+    k = torch.tensor(np.concatenate([i for _, _, i in found]), dtype=torch.float32)
+    return Cameras(camera_to_worlds=c2w, fx=k[:, 0:1], fy=k[:, 1:2], cx=k[:, 2:3], cy=k[:, 3:4],
+                   width=k[:, 4:5].round().long(), height=k[:, 5:6].round().long(),
+                   camera_type=CameraType.PERSPECTIVE)  # fmt: skip
+
+
+def render_cameras_dataparser_outputs(spec: FusionSpec, metadata: dict) -> DataparserOutputs | None:
+    """Cameras to render a fused run from when its spec has no test images (``ns-render spiral``/``interpolate``/
+    ``dataset``, ``ns-export tsdf``, the viewer's camera frustums): every fused NeRF's training cameras in the common
+    frame (:func:`nerf_training_cameras`), without images (named ``<nerf name>/train_00000`` ...), in the spec's
+    order. None when no NeRF has any."""
+    found, _ = nerf_training_cameras(spec)
+    if not found:
+        return None
+    return DataparserOutputs(
+        image_filenames=[Path(f"<{name}>") / f"train_{i:05d}" for name, c2w, _ in found for i in range(len(c2w))],
+        cameras=_pinholes(found),
+        scene_box=fused_scene_box(spec),
+        metadata=metadata,
+        dataparser_transform=torch.eye(4)[:3],
+        dataparser_scale=1.0,
+    )
+
+
+def export_cameras(spec: FusionSpec) -> tuple[Cameras, list[str]]:
+    """Every fused NeRF's training cameras in the common frame (:func:`nerf_training_cameras`), the rays
+    ``ns-export pointcloud`` samples, and the names of the NeRFs without any; FusionSpecError when no NeRF has any."""
+    found, missing = nerf_training_cameras(spec)
+    if not found:
         raise spec_error(spec.spec_path, "no fused NeRF has training cameras to sample rays from (the registration "
                                          "file records none and no run's dataset is readable): register the runs "
                                          "again with their datasets in place")  # fmt: skip
-    c2w_all = torch.tensor(np.concatenate(poses), dtype=torch.float32)
-    k = torch.tensor(np.concatenate(intrinsics), dtype=torch.float32)
-    cameras = Cameras(camera_to_worlds=c2w_all, fx=k[:, 0:1], fy=k[:, 1:2], cx=k[:, 2:3], cy=k[:, 3:4],
-                      width=k[:, 4:5].round().long(), height=k[:, 5:6].round().long(),
-                      camera_type=CameraType.PERSPECTIVE)  # fmt: skip
-    return cameras, missing
+    return _pinholes(found), missing
 
 
 @dataclass
@@ -248,7 +256,7 @@ class NerfuserDataManager(VanillaDataManager):
 
     Nothing is trained: the train dataset only carries the :class:`FusionSpec` to the model (its ``metadata``) and
     the cameras to render from (viewer, ``ns-render spiral/interpolate/dataset``). Those are the test images when the
-    spec has them (``ns-eval`` scores them), else the training cameras of the first NeRF whose dataset is readable
+    spec has them (``ns-eval`` scores them), else every fused NeRF's training cameras
     (:func:`render_cameras_dataparser_outputs`, without images, so ``ns-eval`` refuses them), both as train and eval
     dataset; without either, placeholder cameras at the NeRF origins (for the viewer only) and no eval dataset.
 
@@ -314,7 +322,8 @@ class NerfuserDataManager(VanillaDataManager):
         raise SystemExit(
             one_line(
                 f"nerfuser: {self.spec.spec_path or self.config.data}: no cameras to render a spiral or an "
-                "interpolation from (the fusion spec has no test images and no dataset of the fused runs is readable); "
+                "interpolation from (the fusion spec has no test images, the registration file records no training "
+                "cameras and no dataset of the fused runs is readable); "
                 "render a camera path made in the viewer's Render tab (ns-render camera-path), or add 'test_data' to "
                 "the spec and render its views (ns-render dataset --split test)"
             )
@@ -343,6 +352,12 @@ class NerfuserDataManager(VanillaDataManager):
                           "file, dataset gone): their rays are left out[/]")  # fmt: skip
         return cameras.to(self.device)
 
+    @functools.cached_property
+    def _export_image_sizes(self) -> torch.Tensor:
+        """``[N, 2]`` rows and columns of :attr:`export_cameras`, kept on the CPU where the rays are drawn (copied
+        from the device once, not per batch)."""
+        return torch.cat([self.export_cameras.height, self.export_cameras.width], dim=-1).detach().cpu().float()
+
     def next_train(self, step: int) -> tuple[RayBundle, dict]:
         """``train_pixel_sampler.num_rays_per_batch`` random rays of the fused NeRFs' training cameras in the common
         frame (``ns-export pointcloud`` reads these), each through a uniform point of a uniformly drawn camera's
@@ -350,8 +365,7 @@ class NerfuserDataManager(VanillaDataManager):
         Nothing trains on them (``ns-train nerfuser`` runs no iteration)."""
         cams, n, g = self.export_cameras, int(self.train_pixel_sampler.num_rays_per_batch), self._ray_generator
         cam = torch.randint(len(cams), (n,), generator=g)
-        size = torch.cat([cams.height, cams.width], dim=-1).detach().cpu()[cam].float()  # [n, 2]: rows, columns
-        coords = torch.rand((n, 2), generator=g) * size
+        coords = torch.rand((n, 2), generator=g) * self._export_image_sizes[cam]
         cam, coords = cam.to(self.device), coords.to(self.device)
         bundle = cams.generate_rays(camera_indices=cam.unsqueeze(-1), coords=coords)
         return bundle, {"indices": torch.cat([cam.unsqueeze(-1), coords.long()], dim=-1)}

@@ -473,8 +473,9 @@ def test_datamanager_without_test_images(tmp_path, two_runs):
         dm.eval_dataloader  # noqa: B018
 
 
-def test_without_test_images_the_reference_training_cameras_are_rendered(tmp_path):
-    """ns-render spiral/interpolate need cameras: the first readable NeRF's training cameras, in the common frame."""
+def test_without_test_images_every_nerfs_training_cameras_are_rendered(tmp_path):
+    """ns-render spiral/interpolate/dataset and ns-export tsdf need cameras: every fused NeRF's training cameras
+    (the registration file's, else the run's dataset's), in the common frame, in the spec's order."""
     from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager
 
     from nerfuser_ns.runs import training_cameras, training_views
@@ -483,22 +484,37 @@ def test_without_test_images_the_reference_training_cameras_are_rendered(tmp_pat
     a = fake_run(tmp_path / "outputs", "a", data=write_dataset(tmp_path / "capture_a", ring))
     b = fake_run(tmp_path / "outputs", "b")  # its dataset is gone
     T_A = sim3.make_sim3(scene_yaw(0.3), np.array([0.5, -0.1, 0.2]), 1.5)
-    # the reference (first) NeRF has no readable dataset: the next one's cameras are used
-    registration_file(tmp_path / "registration.json", [{"config": str(b), "transform": T_B.tolist()},
-                                                       {"config": str(a), "transform": T_A.tolist()}])  # fmt: skip
-    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [b, a])
-    dm = fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
-    assert isinstance(dm, VanillaDataManager)  # ns-render spiral asserts it
+    b_c2w = np.stack([sim3.make_sim3(scene_yaw(-0.2 * i), np.array([0.0, 0.3 * i, 2.0]), 1.0) for i in range(3)])
+    b_cameras = {"c2w": b_c2w[:, :3].tolist(), "intrinsics": [[5.0, 6.0, 3.0, 2.5, 6, 5]] * 3}
     own = training_cameras(a)
     views = training_views(a)  # the same cameras, with the images they belong to in the same order
     assert torch.equal(views.cameras.camera_to_worlds, own.camera_to_worlds)
     assert [Path(f).name for f in views.image_filenames] == [f"f{i}.png" for i in range(5)]
-    expected = sim3.transform_poses(T_A, own.camera_to_worlds.double().numpy())
+    a_expected = sim3.transform_poses(T_A, own.camera_to_worlds.double().numpy())
+
+    def datamanager(b_entry: dict) -> fdata.NerfuserDataManager:
+        registration_file(tmp_path / "registration.json", [{"config": str(b), "transform": T_B.tolist(), **b_entry},
+                                                           {"config": str(a), "transform": T_A.tolist()}])  # fmt: skip
+        spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [b, a])
+        return fdata.NerfuserDataManagerConfig(data=spec).setup(device="cpu", test_mode="test")
+
+    # the first NeRF has neither a dataset nor recorded cameras: the other's cameras alone
+    dm = datamanager({})
+    assert isinstance(dm, VanillaDataManager)  # ns-render spiral asserts it
     assert len(dm.train_dataset) == len(own) == 5 and dm.eval_dataset is dm.train_dataset
-    np.testing.assert_allclose(dm.train_dataset.cameras.camera_to_worlds.numpy(), expected, atol=1e-5)
+    np.testing.assert_allclose(dm.train_dataset.cameras.camera_to_worlds.numpy(), a_expected, atol=1e-5)
     torch.testing.assert_close(dm.train_dataset.cameras.fx, own.fx)
-    camera, batch = dm.eval_dataloader.get_camera(image_idx=0)  # where ns-render spiral starts
-    np.testing.assert_allclose(camera.camera_to_worlds[0].numpy(), expected[0], atol=1e-5)
+    # with its training cameras in the registration file, both NeRFs' cameras, the first NeRF's first (named as the
+    # spec names them)
+    dm = datamanager({"training_cameras": b_cameras})
+    b_expected = sim3.transform_poses(T_B, b_c2w)[:, :3]
+    np.testing.assert_allclose(dm.train_dataset.cameras.camera_to_worlds.numpy(),
+                               np.concatenate([b_expected, a_expected]), atol=1e-5)  # fmt: skip
+    names = [f.as_posix() for f in dm.train_dataset.image_filenames]
+    assert names[2:4] == ["<nerf0>/train_00002", "<nerf1>/train_00000"]
+    assert dm.train_dataset.cameras.width[:, 0].tolist() == [6] * 3 + [8] * 5
+    camera, batch = dm.eval_dataloader.get_camera(image_idx=3)
+    np.testing.assert_allclose(camera.camera_to_worlds[0].numpy(), a_expected[0], atol=1e-5)
     assert batch["image"].shape == (6, 8, 3)  # no image: a grey stand-in
     # they are not test images: ns-eval still refuses
     with pytest.raises(RuntimeError, match="has no test images; add 'test_data'"):

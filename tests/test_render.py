@@ -1,9 +1,9 @@
 """nerfstudio's ns-render spiral and interpolate, and ns-export pointcloud, on a fused run of the two shipped demo
 NeRFs (demo/runs).
 
-Both commands need cameras from the run's datamanager: the fusion spec's test views, else the training cameras of
-the first NeRF whose dataset is readable (in the common frame), else they fail with one line naming what to use
-instead. Renders are a few frames of a few pixels, written as images (no video encoding).
+Both commands need cameras from the run's datamanager: the fusion spec's test views, else every NeRF's training
+cameras (in the common frame), else they fail with one line naming what to use instead. Renders are a few frames of a
+few pixels, written as images (no video encoding). ns-export tsdf and poisson mesh the fused scene.
 """
 
 from __future__ import annotations
@@ -135,7 +135,7 @@ def test_spiral_and_interpolate_along_the_test_views(fusion, tmp_path):
     assert len(frames(tmp_path / "interp")) >= 4  # 3 test views, 2 steps between each
 
 
-def test_without_test_views_the_reference_training_cameras_are_used(fusion, tmp_path):
+def test_without_test_views_the_training_cameras_are_used(fusion, tmp_path):
     write_fusion_spec(fusion["spec"], [fusion["a"], fusion["b"]], registration="registration.json")
     spiral(fusion, tmp_path).main()
     assert len(shots := frames(tmp_path / "spiral")) == 4 and shots[0].shape == (H, W, 3)
@@ -194,3 +194,38 @@ def test_ns_export_pointcloud_exports_the_fused_scene_from_every_nerfs_cameras(f
     export.main()
     assert "no training cameras for b" in " ".join(capsys.readouterr().out.split())
     assert (tmp_path / "export_a" / "point_cloud.ply").is_file()
+
+
+def test_ns_export_tsdf_and_poisson_mesh_the_fused_scene(fusion, tmp_path):
+    """nerfstudio's own ``ns-export tsdf`` (textured by the fused model) and ``poisson`` on a fused run: the TSDF
+    integrates the blend's depth from the run's cameras (here the test views) inside the fused scene box, so its
+    surface passes through the fused depth points."""
+    write_fusion_spec(fusion["spec"], [fusion["a"], fusion["b"]], registration="registration.json",
+                      test_data=fusion["test_data"])  # fmt: skip
+    exporter.ExportTSDFMesh(load_config=fusion["config"], output_dir=tmp_path / "tsdf", resolution=16,
+                            downscale_factor=1, use_bounding_box=False, num_pixels_per_side=64,
+                            target_num_faces=500).main()  # fmt: skip
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "tsdf" / "tsdf_mesh.ply"))
+    vertices = np.asarray(mesh.vertices)
+    assert len(mesh.triangles) > 0 and (tmp_path / "tsdf" / "mesh.obj").is_file()  # textured through the model
+    _, pipeline, _, _ = eval_setup(fusion["config"], test_mode="inference")
+    box = pipeline.datamanager.train_dataset.scene_box.aabb.double().numpy()  # every NeRF's [-1, 1] cube
+    assert (vertices >= box[0] - 1e-4).all() and (vertices <= box[1] + 1e-4).all()
+    cameras = pipeline.datamanager.train_dataset.cameras
+    points = []
+    for i in range(len(cameras)):
+        with torch.no_grad():
+            outputs = pipeline.model.get_outputs_for_camera(cameras[i : i + 1])
+        rays = cameras[i : i + 1].generate_rays(camera_indices=0)
+        surface = outputs["accumulation"][..., 0] > 0.5
+        points.append((rays.origins + rays.directions * outputs["depth"])[surface].double().numpy())
+    points = np.concatenate(points)
+    points = points[((points > box[0]) & (points < box[1])).all(-1)]
+    voxel = (box[1] - box[0]).max() / 16
+    nearest = np.linalg.norm(points[:, None] - vertices[None], axis=-1).min(axis=1)
+    assert len(points) > 20 and np.median(nearest) < voxel, (np.median(nearest), voxel)
+    exporter.ExportPoissonMesh(load_config=fusion["config"], output_dir=tmp_path / "poisson", num_points=300,
+                               remove_outliers=False, normal_method="open3d", num_rays_per_batch=128,
+                               texture_method="point_cloud").main()  # fmt: skip
+    poisson = o3d.io.read_triangle_mesh(str(tmp_path / "poisson" / "poisson_mesh.ply"))
+    assert len(poisson.triangles) > 0 and np.isfinite(np.asarray(poisson.vertices)).all()
