@@ -16,6 +16,7 @@ from jaxtyping import Float, Int
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.models.base_model import Model
+from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils import colors
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
@@ -62,6 +63,12 @@ class NerfAdapter:
     def supports(cls, model: Model) -> bool:
         raise NotImplementedError
 
+    @classmethod
+    def supports_class(cls, model_class: type) -> bool | None:
+        """Whether models of ``model_class`` (a run config's ``pipeline.model._target``) can be adapted, judged
+        before any is built; None when only a built model tells (:meth:`supports`)."""
+        return None
+
     def collide(self, ray_bundle: RayBundle) -> RayBundle:
         """Sets nears/fars as the sub-model would (its own collider, in its frame) unless already set."""
         collider = getattr(self.model, "collider", None)
@@ -91,6 +98,10 @@ class NerfactoAdapter(NerfAdapter):
     def supports(cls, model: Model) -> bool:
         return all(hasattr(model, a) for a in ("proposal_sampler", "density_fns", "field", "renderer_rgb"))
 
+    @classmethod
+    def supports_class(cls, model_class: type) -> bool | None:
+        return issubclass(model_class, NerfactoModel)
+
     def samples(self, ray_bundle: RayBundle) -> NerfSamples:
         m = self.model
         ray_samples, _, _ = m.proposal_sampler(ray_bundle, density_fns=m.density_fns)
@@ -108,6 +119,17 @@ class NerfactoAdapter(NerfAdapter):
 
 ADAPTERS: list[type[NerfAdapter]] = [NerfactoAdapter]
 """Adapter classes tried in order; append yours to support another model family."""
+
+
+def check_model_class(name: str, model_class: type, method: str) -> None:
+    """TypeError naming run ``name`` when every adapter rejects its model class (``ns-train nerfuser`` asks before
+    it writes anything: e.g. a splatfacto or instant-ngp run beside nerfacto ones; such runs still register)."""
+    if all(cls.supports_class(model_class) is False for cls in ADAPTERS):
+        raise TypeError(
+            f"run {name!r} was trained with {method} ({model_class.__name__}), whose ray samples cannot be merged "
+            "with the others': fuse nerfacto-family runs (nerfacto, nerfacto-big, depth-nerfacto ...), or register a "
+            "NerfAdapter subclass in nerfuser_ns.adapters.ADAPTERS"
+        )
 
 
 def make_adapter(model: Model) -> NerfAdapter:

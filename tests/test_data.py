@@ -604,3 +604,30 @@ def test_the_automatic_registration_says_what_it_runs_before_it_starts(tmp_path,
     said = " ".join(calls[0].split())
     assert "registering 2 runs now" in said
     assert "pose source auto" in said and "estimator nerfuser" in said and "device" in said
+
+
+@pytest.mark.parametrize("method", ["splatfacto", "instant-ngp"])
+def test_ns_train_nerfuser_names_a_run_whose_samples_cannot_be_merged_before_writing(tmp_path, method):
+    """A splatfacto or instant-ngp run beside a nerfacto one registers, but its samples cannot be blended: ns-train
+    nerfuser says which run and why in one line before the run folder exists (not a traceback after it)."""
+    from nerfstudio.configs.method_configs import method_configs
+
+    a = fake_run(tmp_path / "outputs", "a")
+    other = fake_run(tmp_path / "outputs", "other")
+    config = method_configs[method]
+    config.experiment_name, config.timestamp, config.output_dir = "other", "run", tmp_path / "outputs"
+    other.write_text(yaml.dump(config))
+    registration_file(tmp_path / "registration.json", [{"config": str(a), "transform": np.eye(4).tolist()},
+                                                       {"config": str(other), "transform": T_B.tolist()}])  # fmt: skip
+    spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, other], registration="registration.json")
+    model = config.pipeline.model._target.__name__
+    refused_before_writing(spec, tmp_path / "out", rf"^nerfuser: run 'nerf1' was trained with {method} \({model}\)")
+    # the nerfacto family passes the same check
+    ok_spec = fspec.write_fusion_spec(tmp_path / "ok.json", [a, a], registration="registration_ok.json")
+    registration_file(tmp_path / "registration_ok.json", [{"config": str(a), "transform": np.eye(4).tolist()},
+                                                          {"config": str(a), "transform": T_B.tolist()}])  # fmt: skip
+    trainer = nerfuser_config()
+    trainer.data, trainer.output_dir = ok_spec, tmp_path / "ok_out"
+    trainer.set_timestamp()
+    trainer.save_config()
+    assert (tmp_path / "ok_out").is_dir()
