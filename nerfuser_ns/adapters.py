@@ -121,11 +121,16 @@ ADAPTERS: list[type[NerfAdapter]] = [NerfactoAdapter]
 """Adapter classes tried in order; append yours to support another model family."""
 
 
+class UnsupportedRunError(TypeError):
+    """A run whose model no adapter can query for ray samples (its message names the run)."""
+
+
 def check_model_class(name: str, model_class: type, method: str) -> None:
-    """TypeError naming run ``name`` when every adapter rejects its model class (``ns-train nerfuser`` asks before
-    it writes anything: e.g. a splatfacto or instant-ngp run beside nerfacto ones; such runs still register)."""
+    """:class:`UnsupportedRunError` naming run ``name`` when every adapter rejects its model class (``ns-train
+    nerfuser`` asks before it writes anything: e.g. a splatfacto or instant-ngp run beside nerfacto ones; such runs
+    still register)."""
     if all(cls.supports_class(model_class) is False for cls in ADAPTERS):
-        raise TypeError(
+        raise UnsupportedRunError(
             f"run {name!r} was trained with {method} ({model_class.__name__}), whose ray samples cannot be merged "
             "with the others': fuse nerfacto-family runs (nerfacto, nerfacto-big, depth-nerfacto ...), or register a "
             "NerfAdapter subclass in nerfuser_ns.adapters.ADAPTERS"
@@ -136,7 +141,7 @@ def make_adapter(model: Model) -> NerfAdapter:
     for cls in ADAPTERS:
         if cls.supports(model):
             return cls(model)
-    raise TypeError(
+    raise UnsupportedRunError(
         f"nerfuser: no adapter for {type(model).__name__}; supported: nerfacto-family models "
         "(register a NerfAdapter subclass in nerfuser_ns.model.ADAPTERS)"
     )
@@ -210,8 +215,9 @@ class ModelCache(nn.Module):
         model.requires_grad_(False)
         try:
             adapter = make_adapter(model)
-        except TypeError as e:  # name the run: with several runs the model class alone does not say which
-            raise TypeError(f"run {self.names[i]!r}: {e}; its ray samples cannot be merged with the others'") from None
+        except UnsupportedRunError as e:  # name the run: with several runs the model class alone does not say which
+            raise UnsupportedRunError(f"run {self.names[i]!r}: {e}; its ray samples cannot be merged with the "
+                                      "others'") from None  # fmt: skip
         self._resident[i] = adapter
         self.loads += 1
         return adapter

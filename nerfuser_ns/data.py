@@ -26,18 +26,11 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
-from nerfuser_ns.adapters import check_model_class
+from nerfuser_ns.adapters import UnsupportedRunError
 from nerfuser_ns.blend_settings import BlendSettings
-from nerfuser_ns.model import NerfuserModelConfig
+from nerfuser_ns.model import NerfuserModelConfig, check_mergeable
 from nerfuser_ns.registration import RegistrationConfig
-from nerfuser_ns.runs import (
-    RunLoadError,
-    applied_transform,
-    read_config,
-    run_views,
-    stored_to_nerf,
-    training_cameras,
-)
+from nerfuser_ns.runs import RunLoadError, applied_transform, run_views, stored_to_nerf, training_cameras
 from nerfuser_ns.sim3 import transform_poses
 from nerfuser_ns.spec import METADATA_KEY, FusionSpec, FusionSpecError, one_line, read_fusion_spec, spec_error
 
@@ -427,10 +420,8 @@ class NerfuserTrainerConfig(TrainerConfig):
                                     registration_config=getattr(datamanager, "registration", None))  # fmt: skip
             if spec.test_run is not None:
                 held_out_dataparser_outputs(spec, {})  # its dataset must parse and hold images out
-            for entry in spec.nerfs:  # a method whose samples cannot be merged fails here, not after the run folder
-                run = read_config(entry.config_path)
-                check_model_class(entry.name, run.pipeline.model._target, run.method_name)
-        except (FusionSpecError, ValueError, TypeError) as e:
+            check_mergeable(spec)  # a method whose samples cannot be merged fails here, not after the run folder
+        except (FusionSpecError, ValueError, UnsupportedRunError) as e:
             raise SystemExit(f"nerfuser: {one_line(str(e)).removeprefix('nerfuser: ')}") from None
         data = Path(data).absolute()
         self.pipeline.datamanager.data = data

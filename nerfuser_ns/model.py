@@ -62,6 +62,8 @@ from nerfuser_ns.adapters import (
     NerfAdapter,
     NerfSamples,
     QueriedSamples,
+    UnsupportedRunError,
+    check_model_class,
     make_adapter,
 )
 from nerfuser_ns.appearance import IDENTITY, apply_colour_map
@@ -69,8 +71,8 @@ from nerfuser_ns.blend_settings import SHARE_PALETTE, BlendSettings
 from nerfuser_ns.blending import BLEND_METHODS, COVERAGE_METHODS, PAPER_OBJECT_CENTRIC, BlendMethod
 from nerfuser_ns.coverage import CameraIndex, CoverageParams
 from nerfuser_ns.registration.record import TrainingCameras
-from nerfuser_ns.runs import load_run
-from nerfuser_ns.spec import read_fusion_spec
+from nerfuser_ns.runs import load_run, read_config
+from nerfuser_ns.spec import FusionSpec, read_fusion_spec
 from nerfuser_ns.viewer import NerfuserSceneControl
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -203,6 +205,7 @@ class NerfuserModel(Model):
             entries = list(metadata["nerfuser_models"])
         elif metadata.get("nerfuser") is not None or self.config.fusion_spec is not None:
             spec = metadata.get("nerfuser") or read_fusion_spec(self.config.fusion_spec, register=False)
+            check_mergeable(spec)  # before any run is loaded
             # With a limit, nothing is loaded here: all the setup needs (transforms, cameras, colour maps) is in the
             # spec, and the camera-index range is read from the model once it is loaded.
             entries = [(n.name, None if limit is not None else load_run(n.config_path, device="cpu").model,
@@ -224,8 +227,9 @@ class NerfuserModel(Model):
             for name, m in zip(self.nerf_names, self.nerfs.models, strict=True):
                 try:
                     self.adapters.append(make_adapter(m))
-                except TypeError as e:  # name the run: with several runs the model class alone does not say which
-                    raise TypeError(f"run {name!r}: {e}; its ray samples cannot be merged with the others'") from None
+                except UnsupportedRunError as e:  # name the run: with several runs the class alone does not say which
+                    raise UnsupportedRunError(f"run {name!r}: {e}; its ray samples cannot be merged with the "
+                                              "others'") from None  # fmt: skip
         T = torch.tensor(np.stack([np.asarray(e[2], dtype=np.float64) for e in entries]), dtype=torch.float64)
         scales = torch.linalg.det(T[:, :3, :3]).pow(1.0 / 3.0)
         T_inv = torch.linalg.inv(T)
@@ -580,6 +584,14 @@ def _camera_index(cameras: TrainingCameras | CameraIndex | None, nerf_to_common:
     if not isinstance(cameras, CameraIndex):
         raise TypeError(f"nerfuser: training cameras must be TrainingCameras or CameraIndex, got {type(cameras)}")
     return cameras.transformed(nerf_to_common).to("cpu")
+
+
+def check_mergeable(spec: FusionSpec) -> None:
+    """:class:`~nerfuser_ns.adapters.UnsupportedRunError` naming the first run of ``spec`` whose model class no adapter
+    takes (judged from its config.yml, nothing loaded)."""
+    for entry in spec.nerfs:
+        run = read_config(entry.config_path)
+        check_model_class(entry.name, run.pipeline.model._target, run.method_name)
 
 
 def fuse_models(

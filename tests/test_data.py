@@ -622,6 +622,11 @@ def test_ns_train_nerfuser_names_a_run_whose_samples_cannot_be_merged_before_wri
     spec = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, other], registration="registration.json")
     model = config.pipeline.model._target.__name__
     refused_before_writing(spec, tmp_path / "out", rf"^nerfuser: run 'nerf1' was trained with {method} \({model}\)")
+    if method == "splatfacto":  # the viewer checks the same before loading any run
+        proc = subprocess.run([str(Path(sys.executable).parent / "ns-nerfuser-view"), str(spec), "--device", "cpu"],
+                              capture_output=True, text=True, timeout=300, cwd=tmp_path)  # fmt: skip
+        assert proc.returncode == 1, proc.stderr[-2000:]
+        assert "run 'nerf1' was trained with splatfacto" in proc.stderr and "Traceback" not in proc.stderr
     # the nerfacto family passes the same check
     ok_spec = fspec.write_fusion_spec(tmp_path / "ok.json", [a, a], registration="registration_ok.json")
     registration_file(tmp_path / "registration_ok.json", [{"config": str(a), "transform": np.eye(4).tolist()},

@@ -31,6 +31,7 @@ from rich.console import Console
 from rich.text import Text
 
 from nerfuser_ns import runs
+from nerfuser_ns.adapters import UnsupportedRunError
 from nerfuser_ns.blend_settings import BlendSettings
 from nerfuser_ns.blending import BlendMethod
 from nerfuser_ns.method_configs.nerfuser import nerfuser_config
@@ -276,7 +277,7 @@ def entrypoint() -> None:
     command = tyro.cli(ViewCommand)
     try:
         command.main()
-    except (FusionSpecError, RunLoadError, ViewerSetupError) as e:
+    except (FusionSpecError, RunLoadError, ViewerSetupError, UnsupportedRunError) as e:
         # plain text, not console markup: a path like fusion[old].json must print as written
         message = Text(f"ns-nerfuser-view: {' '.join(str(e).split())}", style="bold red")
         ERR_CONSOLE.print(message, highlight=False)
