@@ -16,7 +16,6 @@ from jaxtyping import Float, Int
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.models.base_model import Model
-from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils import colors
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
@@ -100,7 +99,10 @@ class NerfactoAdapter(NerfAdapter):
 
     @classmethod
     def supports_class(cls, model_class: type) -> bool | None:
-        return issubclass(model_class, NerfactoModel)
+        # by name: importing nerfstudio.models.nerfacto here would print its fields' deprecation warnings at the start
+        # of every command, before a one-line error
+        return any(f"{c.__module__}.{c.__qualname__}" == "nerfstudio.models.nerfacto.NerfactoModel"
+                   for c in model_class.__mro__)  # fmt: skip
 
     def samples(self, ray_bundle: RayBundle) -> NerfSamples:
         m = self.model
