@@ -139,14 +139,17 @@ def check_model_class(name: str, model_class: type, method: str) -> None:
         )
 
 
-def make_adapter(model: Model) -> NerfAdapter:
+def make_adapter(model: Model, name: str | None = None) -> NerfAdapter:
+    """The first adapter of :data:`ADAPTERS` that supports ``model``; :class:`UnsupportedRunError` otherwise, naming
+    run ``name`` when given (with several runs the model class alone does not say which)."""
     for cls in ADAPTERS:
         if cls.supports(model):
             return cls(model)
-    raise UnsupportedRunError(
-        f"nerfuser: no adapter for {type(model).__name__}; supported: nerfacto-family models "
-        "(register a NerfAdapter subclass in nerfuser_ns.model.ADAPTERS)"
-    )
+    message = (f"nerfuser: no adapter for {type(model).__name__}; supported: nerfacto-family models "
+               "(register a NerfAdapter subclass in nerfuser_ns.model.ADAPTERS)")  # fmt: skip
+    if name is not None:
+        message = f"run {name!r}: {message}; its ray samples cannot be merged with the others'"
+    raise UnsupportedRunError(message)
 
 
 class FrozenModels(nn.Module):
@@ -215,11 +218,7 @@ class ModelCache(nn.Module):
         model = self.loader(i)
         model.eval()
         model.requires_grad_(False)
-        try:
-            adapter = make_adapter(model)
-        except UnsupportedRunError as e:  # name the run: with several runs the model class alone does not say which
-            raise UnsupportedRunError(f"run {self.names[i]!r}: {e}; its ray samples cannot be merged with the "
-                                      "others'") from None  # fmt: skip
+        adapter = make_adapter(model, self.names[i])
         self._resident[i] = adapter
         self.loads += 1
         return adapter

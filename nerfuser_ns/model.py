@@ -62,7 +62,6 @@ from nerfuser_ns.adapters import (
     NerfAdapter,
     NerfSamples,
     QueriedSamples,
-    UnsupportedRunError,
     check_model_class,
     make_adapter,
 )
@@ -223,13 +222,7 @@ class NerfuserModel(Model):
         self.adapters: list[NerfAdapter] | None = None
         if self.nerf_cache is None:
             self.nerfs = FrozenModels([e[1] for e in entries])
-            self.adapters = []
-            for name, m in zip(self.nerf_names, self.nerfs.models, strict=True):
-                try:
-                    self.adapters.append(make_adapter(m))
-                except UnsupportedRunError as e:  # name the run: with several runs the class alone does not say which
-                    raise UnsupportedRunError(f"run {name!r}: {e}; its ray samples cannot be merged with the "
-                                              "others'") from None  # fmt: skip
+            self.adapters = [make_adapter(m, name) for name, m in zip(self.nerf_names, self.nerfs.models, strict=True)]
         T = torch.tensor(np.stack([np.asarray(e[2], dtype=np.float64) for e in entries]), dtype=torch.float64)
         scales = torch.linalg.det(T[:, :3, :3]).pow(1.0 / 3.0)
         T_inv = torch.linalg.inv(T)
