@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from collections import deque
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
@@ -46,7 +47,7 @@ from jaxtyping import Float
 
 from nerfuser_ns import sim3
 from nerfuser_ns.cameras import Intrinsics
-from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.files import atomic_dir, write_text_atomic
 
 FOLD_TURN_DEG = 120.0
 """A turn between neighbouring views (file order) above this is a jump: a half turn less a sequence's largest steps."""
@@ -73,6 +74,9 @@ SQUARE_PIXEL_ADVICE = (
     "--skip-colmap: nerfuser_ns's docs/your_own_captures.md), and check again"
 )
 """What to do about a capture whose intrinsics drifted."""
+REPOSE_FOLDER_NAME = "images_to_repose"
+"""Where ``ns-nerfuser-check-capture --write-images-to-repose`` copies a capture's images but its few misposed views
+(beside its transforms.json), to be posed again by ``ns-process-data images``."""
 LARGER_SIDE_NAME = "transforms_larger_side.json"
 """Where ``ns-nerfuser-check-capture --write-larger-side`` writes a folded capture's larger side (beside its
 transforms.json)."""
@@ -372,3 +376,26 @@ def write_larger_side(
             f["file_path"] = str((file.parent / f["file_path"]).resolve())
     write_text_atomic(output, json.dumps(meta, indent=4) + "\n")
     return output
+
+
+def write_repose_images(path: Path | str, drop: Collection[str], output: Path | str) -> tuple[Path, int]:
+    """Copy the dataset's images (the ``images`` folder ``ns-process-data`` wrote) but those ``drop`` names (as COLMAP
+    stored them: relative to that folder) into the new folder ``output`` (atomically; never over an existing one), to
+    pose the capture again with ``ns-process-data images --data <output>``; the folder and the number of images."""
+    images, output = dataset_file(path).parent / "images", Path(output)
+    if not images.is_dir():
+        raise ValueError(f"{images}: no images folder (ns-process-data writes one); copy the capture's images but "
+                         f"{', '.join(sorted(drop))} to a new folder yourself")  # fmt: skip
+    if output.exists():
+        raise ValueError(f"{output}: already exists (an earlier check wrote it?); remove it to write it again")
+    files = sorted(p for p in images.rglob("*") if p.is_file() and not p.name.startswith("."))
+    names = {p.relative_to(images).as_posix() for p in files}
+    if missing := sorted(set(drop) - names):
+        raise ValueError(f"{images}: no image {', '.join(missing)}; the COLMAP model is not of these images")
+    kept = [p for p in files if p.relative_to(images).as_posix() not in drop]
+    with atomic_dir(output) as tmp:
+        for p in kept:
+            target = tmp / p.relative_to(images)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(p, target)
+    return output, len(kept)

@@ -67,6 +67,10 @@ MAX_CROSS_SHARE = 0.1
 """Two sides of a fold share at most this share of the judged pairs (:func:`fold_sides`)."""
 MIN_CROSS_UNEXPLAINED_SHARE = 0.5
 """Of the pairs across two sides of a fold, at least this share are unexplained (:func:`fold_sides`)."""
+MAX_REPOSE_SHARE = 0.1
+"""Where no two sides show, the views that lie in every unexplained pair (:func:`pair_cover`) are named to be left out
+when the capture is posed again only when they are at most this share of the judged views: a few misposed views, not a
+fold through the capture (then another matcher, not fewer views)."""
 PAIR_ID_BASE = 2147483647
 """COLMAP's ``pair_id = PAIR_ID_BASE * image_id1 + image_id2`` (``image_id1 < image_id2``)."""
 
@@ -115,11 +119,36 @@ class MatchCheck:
         sides = fold_sides(self.explained, self.unexplained)
         return None if sides is None else sides[1]
 
+    @cached_property
+    def repose_without(self) -> tuple[str, ...] | None:
+        """The views to leave out when a folded capture with no two sides is posed again: those that lie in every
+        unexplained pair (:func:`pair_cover`), when they are at most :data:`MAX_REPOSE_SHARE` of the judged views;
+        else None (not folded, two sides to train on, or too many views)."""
+        if not self.folded or self.smaller_side is not None:
+            return None
+        cover = pair_cover(self.unexplained)
+        judged = {name for pair in self.explained + self.unexplained for name in pair}
+        return tuple(sorted(cover)) if len(cover) <= MAX_REPOSE_SHARE * len(judged) else None
+
     def to_record(self) -> dict:
-        smaller = self.smaller_side
+        smaller, repose = self.smaller_side, self.repose_without
         return {"checked": self.checked, "pairs": self.pairs, "unexplained_pairs": len(self.unexplained),
                 "unexplained_share": round(self.unexplained_share, 4), "folded": self.folded,
-                "smaller_side": None if smaller is None else list(smaller), "reason": self.reason}  # fmt: skip
+                "smaller_side": None if smaller is None else list(smaller),
+                "repose_without": None if repose is None else list(repose), "reason": self.reason}  # fmt: skip
+
+
+def pair_cover(pairs: Collection[tuple[str, str]]) -> list[str]:
+    """Views that together lie in every pair of ``pairs``, taken greedily: the view in most of the pairs not yet
+    covered first (ties by name, so the answer is deterministic). One misposed view leaves its unexplained pairs with
+    views posed right, so it alone covers them."""
+    left, cover = set(pairs), []
+    while left:
+        counts = Counter(name for pair in left for name in pair)
+        name = min(counts, key=lambda n: (-counts[n], n))
+        cover.append(name)
+        left = {pair for pair in left if name not in pair}
+    return cover
 
 
 def fold_sides(

@@ -50,6 +50,7 @@ from nerfuser_ns import registration, runs, sim3
 from nerfuser_ns.bench import evaluation
 from nerfuser_ns.bench.practitioner_cases import (
     BLEND_COLUMNS,
+    SOURCE_FRAMES_NAME,
     TRUTH_BLENDS,
     appearance_evals,
     capture_ground_truth,
@@ -66,6 +67,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     images_done,
     registration_with_transforms,
     rejected_registration,
+    reposed_transforms,
     run_config,
     share_captures,
     summarise,
@@ -75,7 +77,7 @@ from nerfuser_ns.bench.practitioner_cases import (
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
-from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME, REPOSE_FOLDER_NAME, check_dataset
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.match_check import check_dataset_matches
 from nerfuser_ns.registration import RegistrationConfig, RegistrationFailed, read_registration
@@ -298,14 +300,20 @@ def stage_colmap(
         if not images_done(case_dir, cap.name).is_file():
             raise SystemExit(f"{images_done(case_dir, cap.name).parent}: no complete image folder; run the scene "
                              "stage first (--stages scene colmap: it also copies a sibling folder's images)")
-        cmd = [str(BIN / "ns-process-data"), "images", "--data", str(images_done(case_dir, cap.name).parent),
-               "--output-dir", str(out.parent), "--no-gpu", "--matching-method", matching_method,
-               "--num-downscales", "0"]  # fmt: skip
-        cmd += ["--camera-type", camera_type] if camera_type != "perspective" else []
-        seconds = _run(cmd, case_dir / f"colmap_{cap.name}.log")
-        if not out.is_file():
-            raise RuntimeError(f"ns-process-data wrote no transforms.json for {cap.name}: COLMAP posed nothing")
+        seconds = _process_data(images_done(case_dir, cap.name).parent, out, matching_method, camera_type,
+                                case_dir / f"colmap_{cap.name}.log")  # fmt: skip
         _add_time(case_dir, f"colmap {cap.name}", seconds)
+
+
+def _process_data(images: Path, out: Path, matching_method: str, camera_type: str, log: Path) -> float:
+    """``ns-process-data images`` (COLMAP, CPU SIFT) on ``images`` into ``out``'s folder; its time."""
+    cmd = [str(BIN / "ns-process-data"), "images", "--data", str(images), "--output-dir", str(out.parent),
+           "--no-gpu", "--matching-method", matching_method, "--num-downscales", "0"]  # fmt: skip
+    cmd += ["--camera-type", camera_type] if camera_type != "perspective" else []
+    seconds = _run(cmd, log)
+    if not out.is_file():
+        raise RuntimeError(f"ns-process-data wrote no transforms.json from {images}: COLMAP posed nothing")
+    return seconds
 
 
 def _training_data(case_dir: Path, capture: str) -> Path:
@@ -314,27 +322,50 @@ def _training_data(case_dir: Path, capture: str) -> Path:
     return file if file.name == LARGER_SIDE_NAME else file.parent
 
 
-def stage_check(layout, case_dir: Path) -> None:
-    """``ns-nerfuser-check-capture --write-larger-side`` on every capture's dataset (exit 1 means a capture is folded:
-    expected, not an error); what it found goes to ``capture_check.json``."""
+def stage_check(layout, case_dir: Path, matching_method: str = "exhaustive", camera_type: str = "perspective") -> None:
+    """The user's guide before training: ``ns-nerfuser-check-capture --write-larger-side --write-images-to-repose`` on
+    every capture's dataset (exit 1 means a capture is folded: expected, not an error); a capture whose check named a
+    few misposed views is posed again without them (as the first time, into :func:`reposed_transforms`) and checked
+    again. What it found goes to ``capture_check.json``."""
     out = case_dir / "capture_check.json"
     if out.is_file():
         return
-    datasets = [str(dataset_transforms(case_dir, cap.name).parent) for cap in layout.captures]
-    cmd = [str(BIN / "ns-nerfuser-check-capture"), *datasets, "--write-larger-side"]
+    datasets = [dataset_transforms(case_dir, cap.name).parent for cap in layout.captures]
+    for d in datasets:  # an interrupted check's copy: written again from the same dataset
+        shutil.rmtree(d / REPOSE_FOLDER_NAME, ignore_errors=True)
+    _check_captures(datasets, case_dir / "check_capture.log", "--write-larger-side", "--write-images-to-repose")
+    checks = {cap.name: _check_record(d) for cap, d in zip(layout.captures, datasets, strict=True)}
+    for cap, d in zip(layout.captures, datasets, strict=True):
+        images = d / REPOSE_FOLDER_NAME
+        if not images.is_dir():
+            continue
+        reposed = reposed_transforms(case_dir, cap.name)
+        if not reposed.is_file():
+            seconds = _process_data(images, reposed, matching_method, camera_type,
+                                    case_dir / f"colmap_{cap.name}_reposed.log")  # fmt: skip
+            _add_time(case_dir, f"colmap {cap.name} reposed", seconds)
+        # ns-process-data numbered the images afresh; the truth reads the first dataset's numbers
+        sources = sorted(p.name for p in images.iterdir())
+        names = {f"frame_{i + 1:05d}{Path(n).suffix}": n for i, n in enumerate(sources)}
+        write_text_atomic(reposed.parent / SOURCE_FRAMES_NAME, json.dumps(names, indent=1) + "\n")
+        _check_captures([reposed.parent], case_dir / f"check_capture_{cap.name}_reposed.log", "--write-larger-side")
+        checks[cap.name]["reposed"] = _check_record(reposed.parent)
+    write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
+
+
+def _check_captures(datasets: list[Path], log: Path, *options: str) -> None:
+    cmd = [str(BIN / "ns-nerfuser-check-capture"), *map(str, datasets), *options]
     CONSOLE.print(f"[dim]$ {' '.join(cmd)}[/]")
-    log = case_dir / "check_capture.log"
     with open(log, "w") as f:
         proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
     if proc.returncode not in (0, 1) or "error:" in log.read_text():
         raise RuntimeError(f"ns-nerfuser-check-capture failed (exit {proc.returncode}), see {log}")
-    checks = {}
-    for cap, d in zip(layout.captures, datasets, strict=True):
-        larger = Path(d) / LARGER_SIDE_NAME
-        checks[cap.name] = {**check_dataset(d).to_record(), "matches": check_dataset_matches(d).to_record(),
-                            "larger_side": json.loads(larger.read_text())["nerfuser_larger_side"]
-                            if larger.is_file() else None}  # fmt: skip
-    write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
+
+
+def _check_record(dataset: Path) -> dict:
+    larger = dataset / LARGER_SIDE_NAME
+    return {**check_dataset(dataset).to_record(), "matches": check_dataset_matches(dataset).to_record(),
+            "larger_side": json.loads(larger.read_text())["nerfuser_larger_side"] if larger.is_file() else None}
 
 
 def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
@@ -1127,7 +1158,7 @@ def main(cfg: BenchPractitioner) -> None:
             if "colmap" in cfg.stages:
                 stage_colmap(layout, case_dir, cfg.matching_method, cfg.camera_type)
             if cfg.check_captures and "train" in cfg.stages:
-                stage_check(layout, case_dir)
+                stage_check(layout, case_dir, cfg.matching_method, cfg.camera_type)
             if "train" in cfg.stages:
                 stage_train(layout, case_dir, cfg)
             if "register" in cfg.stages:

@@ -16,12 +16,14 @@ from scipy.spatial.transform import Rotation
 
 from nerfuser_ns import sim3
 from nerfuser_ns.bench.practitioner_cases import case_layout, colmap_tie
-from nerfuser_ns.capture_check import LARGER_SIDE_NAME, write_larger_side
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME, REPOSE_FOLDER_NAME, write_larger_side, write_repose_images
 from nerfuser_ns.match_check import (
+    MAX_REPOSE_SHARE,
     MAX_UNEXPLAINED_SHARE,
     PAIR_ID_BASE,
     check_dataset_matches,
     fold_sides,
+    pair_cover,
     read_verified_pairs,
     sampson_distances,
 )
@@ -152,6 +154,16 @@ def consistent(tmp_path) -> Path:
 @pytest.fixture
 def folded(tmp_path) -> Path:
     return _write_capture(tmp_path / "folded", folded=True)
+
+
+@pytest.fixture
+def one_misposed(tmp_path) -> Path:
+    """Twelve unordered street views, one (frame_00006.png) posed by the twin, with their image files."""
+    folder = _write_capture(tmp_path / "one_misposed", folded=True, twins=(5,))
+    (folder / "images").mkdir()
+    for i in range(NUM_VIEWS):
+        (folder / "images" / f"frame_{i + 1:05d}.png").write_bytes(bytes([i]) * 16)
+    return folder
 
 
 @pytest.fixture
@@ -325,3 +337,66 @@ def test_the_benchmarks_colmap_record_carries_the_verdict(consistent, folded, tm
     assert records[0]["match_check_pairs"] == records[1]["match_check_pairs"] > 0
     shutil.rmtree(case / "datasets" / layout.captures[0].name / "colmap")  # posed another way: no verdict, no key
     assert "match_check_folded" not in colmap_tie(layout.captures[0], case)[0]
+
+
+def test_pair_cover_takes_the_view_in_most_pairs_first_and_covers_every_pair():
+    star = [("c", f"v{i}") for i in range(5)]
+    assert pair_cover(star) == ["c"]
+    assert pair_cover(star + [("a", "b")]) == ["c", "a"]  # ties by name
+    cover = pair_cover([("a", "b"), ("c", "d"), ("b", "c")])
+    assert all(set(pair) & set(cover) for pair in [("a", "b"), ("c", "d"), ("b", "c")]) and len(cover) == 2
+    assert pair_cover([]) == []
+
+
+def test_one_misposed_view_is_named_to_pose_again_without_and_a_fold_is_not(one_misposed, folded, two_way):
+    check = check_dataset_matches(one_misposed)
+    assert check.folded and check.smaller_side is None
+    assert check.repose_without == ("frame_00006.png",)
+    assert all("frame_00006.png" in pair for pair in check.unexplained)
+    assert check.to_record()["repose_without"] == ["frame_00006.png"]
+    # three of twelve views by the twin: more than MAX_REPOSE_SHARE, a fold rather than a few misposed views
+    assert len(FOLDED) > MAX_REPOSE_SHARE * NUM_VIEWS and check_dataset_matches(folded).repose_without is None
+    assert check_dataset_matches(two_way).repose_without is None  # two sides: train on the larger one instead
+
+
+def test_cli_copies_every_image_but_the_misposed_view_to_pose_again_and_never_overwrites(one_misposed, capsys):
+    assert cli.run(cli.CheckCaptureCommand([one_misposed])) == 1
+    out = capsys.readouterr().out
+    assert "every unexplained pair goes through 1 view(s)" in out
+    assert "pose it again without frame_00006.png" in out and "--write-images-to-repose" in out
+    assert not (one_misposed / REPOSE_FOLDER_NAME).exists()
+    before = sorted(p.name for p in one_misposed.iterdir())
+    assert cli.run(cli.CheckCaptureCommand([one_misposed], write_images_to_repose=True)) == 1
+    out = capsys.readouterr().out
+    folder = one_misposed / REPOSE_FOLDER_NAME
+    names = sorted(p.name for p in folder.iterdir())
+    assert names == [f"frame_{i + 1:05d}.png" for i in range(NUM_VIEWS) if i != 5]
+    assert all((folder / n).read_bytes() == (one_misposed / "images" / n).read_bytes() for n in names)
+    assert f"wrote {folder} (11 images, without frame_00006.png)" in out and "ns-process-data images" in out
+    assert sorted(p.name for p in one_misposed.iterdir()) == sorted([*before, REPOSE_FOLDER_NAME])
+    # a second run names the folder it will not overwrite, in one line
+    assert cli.run(cli.CheckCaptureCommand([one_misposed], write_images_to_repose=True)) == 1
+    err = capsys.readouterr().err
+    assert f"{folder}: already exists" in err and len(err.strip().splitlines()) == 1
+
+
+def test_repose_images_refuses_names_not_in_the_images_folder_and_leaves_nothing(one_misposed, tmp_path, monkeypatch):
+    with pytest.raises(ValueError, match="no image frame_00099.png"):
+        write_repose_images(one_misposed, ["frame_00099.png"], tmp_path / "out")
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.*"))
+    # a copy that fails halfway leaves no folder behind
+    calls = []
+
+    def failing_copy(src, dst):
+        calls.append(src)
+        if len(calls) == 3:
+            raise OSError("disk full")
+        return shutil.copyfile(src, dst)
+
+    monkeypatch.setattr("nerfuser_ns.capture_check.shutil.copy2", failing_copy)
+    with pytest.raises(OSError, match="disk full"):
+        write_repose_images(one_misposed, ["frame_00006.png"], tmp_path / "out")
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.*"))
+    shutil.rmtree(one_misposed / "images")
+    with pytest.raises(ValueError, match="no images folder"):
+        write_repose_images(one_misposed, ["frame_00006.png"], tmp_path / "out")

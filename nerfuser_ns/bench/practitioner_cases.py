@@ -162,11 +162,25 @@ def dataset_transforms(case_dir: Path, capture: str) -> Path:
     return case_dir / "datasets" / capture / "transforms.json"
 
 
+def reposed_transforms(case_dir: Path, capture: str) -> Path:
+    """A capture posed again without the few views the match check named (``ns-nerfuser-check-capture
+    --write-images-to-repose``, then ``ns-process-data``): the checked case's ``check`` stage writes it."""
+    return case_dir / "datasets" / f"{capture}_reposed" / "transforms.json"
+
+
+SOURCE_FRAMES_NAME = "source_frames.json"
+"""In a re-posed dataset: its image names -> the first dataset's names of the same images (``ns-process-data``
+numbers its inputs afresh, and a view left out shifts the numbers after it)."""
+
+
 def training_transforms(case_dir: Path, capture: str) -> Path:
-    """The transforms file a capture's run trains on: the larger side of a folded capture where
-    ``ns-nerfuser-check-capture --write-larger-side`` wrote one, else the COLMAP dataset's."""
-    larger = dataset_transforms(case_dir, capture).with_name(LARGER_SIDE_NAME)
-    return larger if larger.is_file() else dataset_transforms(case_dir, capture)
+    """The transforms file a capture's run trains on: the capture posed again where the check named views to leave
+    out (:func:`reposed_transforms`), else the COLMAP dataset; of that, the larger side of a folded capture where
+    ``ns-nerfuser-check-capture --write-larger-side`` wrote one."""
+    reposed = reposed_transforms(case_dir, capture)
+    dataset = reposed if reposed.is_file() else dataset_transforms(case_dir, capture)
+    larger = dataset.with_name(LARGER_SIDE_NAME)
+    return larger if larger.is_file() else dataset
 
 
 def test_transforms(case_dir: Path) -> Path:
@@ -311,6 +325,14 @@ def frame_index(file_path: str) -> int:
     return int(Path(file_path).stem.split("_")[-1]) - 1
 
 
+def view_indices(file_paths: list[str], dataset: Path) -> np.ndarray:
+    """The capture's view numbers of a dataset's images (:func:`frame_index`); in a re-posed dataset through its
+    :data:`SOURCE_FRAMES_NAME` (its inputs were the first dataset's images, a few left out)."""
+    source = dataset / SOURCE_FRAMES_NAME
+    names = json.loads(source.read_text()) if source.is_file() else None
+    return np.array([frame_index(Path(f).name if names is None else names[Path(f).name]) for f in file_paths], int)
+
+
 def capture_ground_truth(layout, case_dir: Path, optimized: bool = True) -> list[dict]:
     """Per capture: the SIM(3) tying its stored (transforms.json) frame to the world, COLMAP's pose noise, and the
     true NeRF-frame -> world map of its run, the same through the tie fitted to the views' rotations as well
@@ -358,10 +380,15 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
         "colmap_rot_err_deg_median": rot_err,
         "colmap_centre_err_median": centre_err,
         "colmap_bend_deg": colmap_bend_deg(stored, true, idx, world_scale),
-        "colmap_focal_ratio": check_dataset_intrinsics(dataset_transforms(case_dir, cap.name)).aspect,
+        "colmap_focal_ratio": check_dataset_intrinsics(training_transforms(case_dir, cap.name)).aspect,
         "pose_tie_rot_err_deg_median": pose_rot_err,
         "pose_tie_misposed_views": sum(misposed.values()),
     }
+    reposed = reposed_transforms(case_dir, cap.name)
+    if reposed.is_file():  # posed again without the views the match check named
+        again = colmap_misposed(cap, case_dir, reposed)
+        record["reposed_posed_by_colmap"] = len(again)
+        record["reposed_misposed_views"] = sum(again.values())
     matches = check_dataset_matches(dataset_transforms(case_dir, cap.name))
     if matches.checked:  # the fold check the user's guide runs before training (ns-nerfuser-check-capture)
         record["match_check_pairs"] = matches.pairs
@@ -370,10 +397,11 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
     return record, data_to_world, pose_to_world, world_scale
 
 
-def colmap_misposed(cap, case_dir: Path) -> dict[str, bool]:
-    """Per view COLMAP posed (``file_path`` of ns-process-data's transforms.json), whether it is misposed
-    (:func:`misposed_frames`, against the capture's true poses)."""
-    transforms = dataset_transforms(case_dir, cap.name)
+def colmap_misposed(cap, case_dir: Path, transforms: Path | None = None) -> dict[str, bool]:
+    """Per view COLMAP posed (``file_path`` of ns-process-data's transforms.json, the first dataset's unless
+    ``transforms`` names another), whether it is misposed (:func:`misposed_frames`, against the capture's true
+    poses)."""
+    transforms = dataset_transforms(case_dir, cap.name) if transforms is None else transforms
     idx, stored = _stored_poses(transforms)
     files = [str(f["file_path"]) for f in json.loads(transforms.read_text())["frames"]]
     return dict(zip(files, map(bool, misposed_frames(stored, cap.c2w_world[idx])), strict=True))
@@ -382,7 +410,7 @@ def colmap_misposed(cap, case_dir: Path) -> dict[str, bool]:
 def _stored_poses(transforms: Path) -> tuple[np.ndarray, np.ndarray]:
     """A dataset's frame numbers and stored camera-to-world poses, in file order."""
     frames = json.loads(transforms.read_text())["frames"]
-    idx = np.array([frame_index(f["file_path"]) for f in frames])
+    idx = view_indices([str(f["file_path"]) for f in frames], transforms.parent)
     return idx, np.array([f["transform_matrix"] for f in frames], dtype=np.float64)
 
 
@@ -400,7 +428,8 @@ def _optimized_ground_truth(config: Path, c2w_world: np.ndarray, world_scale: fl
     optimized = runs.optimized_poses(model, c2w).numpy().astype(np.float64)
     if np.array_equal(optimized, c2w.numpy()):
         return None
-    T, rot_err, centre_err = tie_to_world(optimized, c2w_world[[frame_index(str(f)) for f in views.image_filenames]],
+    files = [str(f) for f in views.image_filenames]
+    T, rot_err, centre_err = tie_to_world(optimized, c2w_world[view_indices(files, Path(files[0]).parent.parent)],
                                            world_scale)  # fmt: skip
     return {"optimized_rot_err_deg_median": rot_err, "optimized_centre_err_median": centre_err,
             "nerf_to_world_optimized": T}  # fmt: skip

@@ -7,6 +7,8 @@ Example::
     ns-nerfuser-check-capture data/east data/west             # a verdict per capture; exit 1 if folded or drifted
     ns-nerfuser-check-capture data/east --write-larger-side   # also writes data/east/transforms_larger_side.json
     ns-train nerfacto --data data/east/transforms_larger_side.json
+    ns-nerfuser-check-capture data/east --write-images-to-repose   # a few misposed views: images to pose again
+    ns-process-data images --data data/east/images_to_repose --output-dir data/east_reposed
 
 On repeated structure COLMAP can pose a block of a capture's views by the wrong copy of the structure (see
 :mod:`nerfuser_ns.capture_check`); a run trained on such poses cannot be registered correctly by any method. The check
@@ -34,12 +36,14 @@ from nerfuser_ns.capture_check import (
     FOLD_TURN_DEG,
     LARGER_SIDE_NAME,
     MAX_RIG_CAMERAS,
+    REPOSE_FOLDER_NAME,
     SEQUENCE_STEP_DEG,
     SQUARE_PIXEL_ADVICE,
     check_dataset,
     check_dataset_intrinsics,
     dataset_file,
     write_larger_side,
+    write_repose_images,
 )
 from nerfuser_ns.match_check import MatchCheck, check_dataset_matches
 
@@ -57,6 +61,9 @@ class CheckCaptureCommand:
     """For each folded capture, write ``transforms_larger_side.json`` beside its transforms.json: every frame but the
     smaller side of the fold (a consistent capture by itself), as the file order shows it, or, for unordered views,
     the matches where they form two sides. The dataset's own file is never changed."""
+    write_images_to_repose: bool = False
+    """For each capture whose unexplained matches all go through a few views (and form no two sides), copy its images
+    but those views to ``images_to_repose/`` beside its transforms.json, to pose again with ``ns-process-data``."""
 
     def main(self) -> int:
         """The exit status: 0 when no capture is folded or drifted, 1 when one is (or an input is bad)."""
@@ -95,6 +102,8 @@ class CheckCaptureCommand:
                 CONSOLE.print(f"[yellow]{fold_warning}[/]")
                 CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
                 CONSOLE.print(f"  {camera_verdict}")
+            if matches.repose_without is not None and not check.folded:
+                self._repose(path, matches.repose_without)
             # the file order's sides where it sees the fold, else the matches' (unordered views)
             drop, found_by = (check.suspect, "file order") if check.folded else (matches.smaller_side, "matches")
             if not drop:
@@ -108,6 +117,17 @@ class CheckCaptureCommand:
                 CONSOLE.print("  train on its larger side (--write-larger-side: a consistent capture by itself), or "
                               "pose it again and check again")  # fmt: skip
         return 1 if found else 0
+
+    def _repose(self, path: Path, views: tuple[str, ...]) -> None:
+        """Advise posing a capture again without its few misposed views, or copy its other images to do so."""
+        names = ", ".join(Path(v).name for v in views)
+        if not self.write_images_to_repose:
+            CONSOLE.print(f"  pose it again without {names} (in every unexplained pair; --write-images-to-repose "
+                          "copies the other images) and check again")  # fmt: skip
+            return
+        out, kept = write_repose_images(path, views, dataset_file(path).parent / REPOSE_FOLDER_NAME)
+        CONSOLE.print(f"  wrote {out} ({kept} images, without {names}): pose them with ns-process-data images "
+                      f"--data {out} --output-dir <a new folder>, check that folder, and train on it")  # fmt: skip
 
 
 def _report_matches(path: Path, matches: MatchCheck) -> bool:
@@ -130,6 +150,10 @@ def _report_matches(path: Path, matches: MatchCheck) -> bool:
         return True
     views = ", ".join(f"{Path(name).name} ({n})" for name, n in matches.views()[:8])
     CONSOLE.print(f"  views in the most unexplained pairs: {views}")
+    if matches.repose_without is not None:
+        CONSOLE.print(f"  every unexplained pair goes through {len(matches.repose_without)} view(s), posed "
+                      "inconsistently with the others; a run trained on these poses cannot be registered correctly")
+        return True  # what to do follows (CheckCaptureCommand._repose)
     CONSOLE.print("  pose the capture again (another matcher, or without those views) and check again; a run trained "
                   "on these poses cannot be registered correctly")  # fmt: skip
     return True

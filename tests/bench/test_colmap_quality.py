@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 from nerfuser_ns import sim3
-from nerfuser_ns.bench.practitioner_cases import case_layout, colmap_misposed, colmap_tie, training_transforms
+from nerfuser_ns.bench.practitioner_cases import (
+    SOURCE_FRAMES_NAME,
+    case_layout,
+    colmap_misposed,
+    colmap_tie,
+    reposed_transforms,
+    training_transforms,
+)
 from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset, write_larger_side
 
 
@@ -97,6 +104,32 @@ def test_a_run_trained_on_the_larger_side_is_tied_by_the_views_it_trained_on(tmp
     assert record["colmap_centre_err_median"] < 1e-6 < folded["colmap_centre_err_median"]  # the centres' tie was bent
     misposed = colmap_misposed(cap, tmp_path)  # per view, over the whole capture
     assert [f for f, wrong in misposed.items() if wrong] == [f"images/frame_{i + 1:05d}.png" for i in range(20, 40)]
+
+
+def test_a_capture_posed_again_without_its_misposed_view_is_tied_through_the_first_datasets_names(tmp_path):
+    """After ``--write-images-to-repose`` and ``ns-process-data`` on the other 63 images: the re-posed dataset's frames
+    are numbered afresh (frame_00011.png is the first dataset's frame_00012.png); through ``source_frames.json`` the
+    run's views are tied to their true poses exactly, the first dataset's record still counts its misposed view."""
+    layout = case_layout("street:3", width=64, height=48)
+    cap = layout.captures[0]
+    poses = cap.c2w_world.copy()
+    poses[10] = sim3.transform_poses(sim3.make_sim3(sim3.so3_exp(np.radians([0.0, 30.0, 0.0]))), poses[10:11])[0]
+    _write_dataset(tmp_path, cap.name, poses, np.arange(cap.num_views))
+    kept = [i for i in range(cap.num_views) if i != 10]
+    rng = np.random.default_rng(1)
+    reposed = reposed_transforms(tmp_path, cap.name)
+    _write_dataset(tmp_path, reposed.parent.name, sim3.transform_poses(sim3.random_sim3(rng), cap.c2w_world[kept]),
+                   np.arange(len(kept)))  # fmt: skip
+    assert training_transforms(tmp_path, cap.name) == reposed
+    shifted = colmap_tie(cap, tmp_path)[0]  # without the names, every view after the dropped one is tied one off
+    (reposed.parent / SOURCE_FRAMES_NAME).write_text(json.dumps(
+        {f"frame_{n + 1:05d}.png": f"frame_{i + 1:05d}.png" for n, i in enumerate(kept)}))  # fmt: skip
+    record = colmap_tie(cap, tmp_path)[0]
+    assert (record["posed_by_colmap"], record["pose_tie_misposed_views"]) == (cap.num_views, 1)
+    assert (record["reposed_posed_by_colmap"], record["reposed_misposed_views"], record["trained_views"]) == (
+        len(kept), 0, len(kept))
+    assert record["colmap_rot_err_deg_median"] < 1e-6 and record["colmap_centre_err_median"] < 1e-6
+    assert record["colmap_bend_deg"] < 1e-6 < shifted["colmap_centre_err_median"]
 
 
 def test_bad_cases_say_what_is_expected(quality, tmp_path):
