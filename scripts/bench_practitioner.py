@@ -754,6 +754,9 @@ def _posed_cell(c: dict) -> str:
     where they are recorded and differ from the posed ones."""
     cell = f"{c['posed_by_colmap']}/{c['views']}"
     extra = [f"{c['pose_tie_misposed_views']} misposed"] if c.get("pose_tie_misposed_views") else []
+    if "reposed_posed_by_colmap" in c:
+        extra.append(f"posed again without the views the check named: {c['reposed_posed_by_colmap']} posed, "
+                     f"{c['reposed_misposed_views']} misposed")  # fmt: skip
     if c.get("trained_views", c["posed_by_colmap"]) != c["posed_by_colmap"]:
         extra.append(f"trained on {c['trained_views']}")
     return cell + (f" ({'; '.join(extra)})" if extra else "")
@@ -774,6 +777,12 @@ def _capture_check_cell(c: dict) -> str:
     matches = c.get("matches")
     if not matches or not matches["checked"]:
         return order
+    if matches.get("repose_without") and "reposed" in c:
+        again = c["reposed"]["matches"]
+        verdict = ("folded again" if again["folded"] else "consistent") if again["checked"] else "not checked"
+        return (f"{order}; the match check named {', '.join(matches['repose_without'])} in every unexplained pair: "
+                f"posed again without, then {verdict} by the match check "
+                f"({again['unexplained_pairs']} of {again['pairs']} pairs unexplained)")  # fmt: skip
     return order + ("; folded by the match check, no sides to train on: trained on every view" if matches["folded"]
                     else "; the match check found it consistent")  # fmt: skip
 

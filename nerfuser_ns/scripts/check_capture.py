@@ -46,6 +46,7 @@ from nerfuser_ns.capture_check import (
     write_repose_images,
 )
 from nerfuser_ns.match_check import MatchCheck, check_dataset_matches
+from nerfuser_ns.scripts.cli import parse
 
 CONSOLE = Console(soft_wrap=True)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -170,7 +171,7 @@ def run(command: CheckCaptureCommand) -> int:
 def entrypoint() -> None:
     """Console script ``ns-nerfuser-check-capture``."""
     tyro.extras.set_accent_color("bright_yellow")
-    sys.exit(run(tyro.cli(CheckCaptureCommand)))
+    sys.exit(run(parse(CheckCaptureCommand)))
 
 
 if __name__ == "__main__":

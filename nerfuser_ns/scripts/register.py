@@ -33,6 +33,7 @@ from nerfuser_ns.registration import (
 )
 from nerfuser_ns.renderers import NerfstudioRenderer
 from nerfuser_ns.runs import RunLoadError, check_dataset_folder, check_device, default_device, run_names
+from nerfuser_ns.scripts.cli import parse
 
 CONSOLE = Console(width=120)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -278,7 +279,7 @@ def run(cmd: RegisterCommand, renderers: list | None = None) -> int:
 def entrypoint() -> None:
     """Console script ``ns-nerfuser-register``."""
     tyro.extras.set_accent_color("bright_yellow")
-    sys.exit(run(tyro.cli(RegisterCommand)))
+    sys.exit(run(parse(RegisterCommand)))
 
 
 if __name__ == "__main__":

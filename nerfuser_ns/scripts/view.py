@@ -37,6 +37,7 @@ from nerfuser_ns.blending import BlendMethod
 from nerfuser_ns.method_configs.nerfuser import nerfuser_config
 from nerfuser_ns.model import NerfuserModel, NerfuserModelConfig
 from nerfuser_ns.runs import RunLoadError, check_device, default_device
+from nerfuser_ns.scripts.cli import parse
 from nerfuser_ns.spec import FusionSpecError
 from nerfuser_ns.viewer import NerfuserSceneControl, ViewerSetupError
 
@@ -274,7 +275,7 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def entrypoint() -> None:
     """Entry point of ``ns-nerfuser-view``."""
-    command = tyro.cli(ViewCommand)
+    command = parse(ViewCommand)
     try:
         command.main()
     except (FusionSpecError, RunLoadError, ViewerSetupError, UnsupportedRunError) as e:
