@@ -362,7 +362,7 @@ def test_one_misposed_view_is_named_to_pose_again_without_and_a_fold_is_not(one_
 def test_cli_copies_every_image_but_the_misposed_view_to_pose_again_and_never_overwrites(one_misposed, capsys):
     assert cli.run(cli.CheckCaptureCommand([one_misposed])) == 1
     out = capsys.readouterr().out
-    assert "every unexplained pair goes through 1 view(s)" in out
+    assert "every unexplained pair goes through frame_00006.png, posed inconsistently" in out
     assert "pose it again without frame_00006.png" in out and "--write-images-to-repose" in out
     assert not (one_misposed / REPOSE_FOLDER_NAME).exists()
     before = sorted(p.name for p in one_misposed.iterdir())

@@ -152,8 +152,9 @@ def _report_matches(path: Path, matches: MatchCheck) -> bool:
     views = ", ".join(f"{Path(name).name} ({n})" for name, n in matches.views()[:8])
     CONSOLE.print(f"  views in the most unexplained pairs: {views}")
     if matches.repose_without is not None:
-        CONSOLE.print(f"  every unexplained pair goes through {len(matches.repose_without)} view(s), posed "
-                      "inconsistently with the others; a run trained on these poses cannot be registered correctly")
+        names = ", ".join(Path(v).name for v in matches.repose_without)
+        CONSOLE.print(f"  every unexplained pair goes through {names}, posed inconsistently with the other views; a "
+                      "run trained on these poses cannot be registered correctly")  # fmt: skip
         return True  # what to do follows (CheckCaptureCommand._repose)
     CONSOLE.print("  pose the capture again (another matcher, or without those views) and check again; a run trained "
                   "on these poses cannot be registered correctly")  # fmt: skip
