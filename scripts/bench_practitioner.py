@@ -829,7 +829,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
     for r in records:
         if r.get("capture_check"):
             parts = [f"{cap}: {_capture_check_cell(c)}" for cap, c in r["capture_check"].items()]
-            lines += [f"Capture check of {r['case']} (`ns-nerfuser-check-capture --write-larger-side` before "
+            repose = " --write-images-to-repose" if any("reposed" in c for c in r["capture_check"].values()) else ""
+            lines += [f"Capture check of {r['case']} (`ns-nerfuser-check-capture --write-larger-side{repose}` before "
                       f"training): {'; '.join(parts)}.", ""]  # fmt: skip
     for r in records:
         checked = [c for c in r["captures"] if "match_check_folded" in c]
