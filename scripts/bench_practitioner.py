@@ -70,6 +70,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     reposed_transforms,
     run_config,
     share_captures,
+    source_frames,
     summarise,
     test_transforms,
     training_transforms,
@@ -345,9 +346,7 @@ def stage_check(layout, case_dir: Path, matching_method: str = "exhaustive", cam
                                     case_dir / f"colmap_{cap.name}_reposed.log")  # fmt: skip
             _add_time(case_dir, f"colmap {cap.name} reposed", seconds)
         # ns-process-data numbered the images afresh; the truth reads the first dataset's numbers
-        sources = sorted(p.name for p in images.iterdir())
-        names = {f"frame_{i + 1:05d}{Path(n).suffix}": n for i, n in enumerate(sources)}
-        write_text_atomic(reposed.parent / SOURCE_FRAMES_NAME, json.dumps(names, indent=1) + "\n")
+        write_text_atomic(reposed.parent / SOURCE_FRAMES_NAME, json.dumps(source_frames(images), indent=1) + "\n")
         _check_captures([reposed.parent], case_dir / f"check_capture_{cap.name}_reposed.log", "--write-larger-side")
         checks[cap.name]["reposed"] = _check_record(reposed.parent)
     write_text_atomic(out, json.dumps(checks, indent=2) + "\n")

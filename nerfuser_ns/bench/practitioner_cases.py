@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from nerfstudio.process_data.process_data_utils import list_images
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
@@ -323,6 +324,12 @@ def blend_gains(records: list[dict], baseline: str = "idw_sample") -> dict[str, 
 def frame_index(file_path: str) -> int:
     """ns-process-data renames the sorted inputs frame_00001.png...; our inputs are view_<i>.png in order."""
     return int(Path(file_path).stem.split("_")[-1]) - 1
+
+
+def source_frames(images: Path) -> dict[str, str]:
+    """``ns-process-data images --data <images>``'s name of each image of the folder -> the image's own name: it copies
+    the images nerfstudio lists (sorted) to ``frame_00001...`` in that order (``process_data_utils.copy_images``)."""
+    return {f"frame_{i + 1:05d}{p.suffix}": p.relative_to(images).as_posix() for i, p in enumerate(list_images(images))}
 
 
 def view_indices(file_paths: list[str], dataset: Path) -> np.ndarray:

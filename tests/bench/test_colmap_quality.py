@@ -16,6 +16,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     colmap_misposed,
     colmap_tie,
     reposed_transforms,
+    source_frames,
     training_transforms,
 )
 from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset, write_larger_side
@@ -122,8 +123,16 @@ def test_a_capture_posed_again_without_its_misposed_view_is_tied_through_the_fir
                    np.arange(len(kept)))  # fmt: skip
     assert training_transforms(tmp_path, cap.name) == reposed
     shifted = colmap_tie(cap, tmp_path)[0]  # without the names, every view after the dropped one is tied one off
-    (reposed.parent / SOURCE_FRAMES_NAME).write_text(json.dumps(
-        {f"frame_{n + 1:05d}.png": f"frame_{i + 1:05d}.png" for n, i in enumerate(kept)}))  # fmt: skip
+    # the images posed again: the first dataset's, frame_00011.png left out (and a file nerfstudio does not list)
+    images = tmp_path / "datasets" / cap.name / "images_to_repose"
+    images.mkdir()
+    for i in kept:
+        (images / f"frame_{i + 1:05d}.png").write_bytes(b"")
+    (images / "notes.txt").write_text("")
+    names = source_frames(images)
+    assert len(names) == len(kept) and names["frame_00010.png"] == "frame_00010.png"
+    assert names["frame_00011.png"] == "frame_00012.png" and names["frame_00063.png"] == "frame_00064.png"
+    (reposed.parent / SOURCE_FRAMES_NAME).write_text(json.dumps(names))
     record = colmap_tie(cap, tmp_path)[0]
     assert (record["posed_by_colmap"], record["pose_tie_misposed_views"]) == (cap.num_views, 1)
     assert (record["reposed_posed_by_colmap"], record["reposed_misposed_views"], record["trained_views"]) == (
