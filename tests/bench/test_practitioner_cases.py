@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from colmap_helpers import NUM_VIEWS, write_colmap_capture
 
 from nerfuser_ns import sim3
 from nerfuser_ns.bench.practitioner_cases import (
@@ -22,8 +23,10 @@ from nerfuser_ns.bench.practitioner_cases import (
     reference_links,
     registration_with_transforms,
     rejected_registration,
+    reposed_transforms,
     share_captures,
     tie_to_world,
+    training_transforms,
 )
 from nerfuser_ns.registration.record import KIND, iter_registered_nerfs
 
@@ -284,3 +287,41 @@ def test_the_capture_check_line_says_which_check_found_the_fold(load_script):
     consistent = {"checked": True, "folded": False}
     assert bench._capture_check_cell({**unordered, "matches": consistent}) == (
         "not checked by file order (no sequence); the match check found it consistent")
+
+
+def test_the_guides_check_poses_a_capture_again_without_the_view_it_names(load_script, tmp_path, monkeypatch):
+    """``--check-captures``: the real ``ns-nerfuser-check-capture`` names capture_1's one misposed view and copies the
+    other images; ``ns-process-data`` (a stand-in here: a consistent reconstruction) poses them into
+    ``capture_1_reposed``, whose frame names map to the first dataset's; capture_0, consistent, is left alone."""
+    bench = load_script("bench_practitioner")
+    layout = case_layout("street:1")
+    for cap, twins in zip(layout.captures, ((), (5,)), strict=True):
+        data = write_colmap_capture(tmp_path / "datasets" / cap.name, folded=bool(twins), twins=twins)
+        (data / "images").mkdir()
+        for i in range(NUM_VIEWS):
+            (data / "images" / f"frame_{i + 1:05d}.png").write_bytes(bytes([i]))
+    posed = []
+
+    def process_data(images, out, matching_method, camera_type, log):
+        posed.append((images, out, matching_method, camera_type))
+        write_colmap_capture(out.parent, folded=False)
+        return 1.5
+
+    monkeypatch.setattr(bench, "_process_data", process_data)
+    bench.stage_check(layout, tmp_path, "sequential", "simple_pinhole")
+    images = tmp_path / "datasets" / "capture_1" / "images_to_repose"
+    reposed = reposed_transforms(tmp_path, "capture_1")
+    assert posed == [(images, reposed, "sequential", "simple_pinhole")]
+    assert sorted(p.name for p in images.iterdir()) == [f"frame_{i + 1:05d}.png" for i in range(NUM_VIEWS) if i != 5]
+    names = json.loads((reposed.parent / "source_frames.json").read_text())
+    assert names["frame_00005.png"] == "frame_00005.png" and names["frame_00006.png"] == "frame_00007.png"
+    checks = json.loads((tmp_path / "capture_check.json").read_text())
+    assert checks["capture_1"]["matches"]["repose_without"] == ["frame_00006.png"]
+    assert checks["capture_1"]["reposed"]["matches"]["folded"] is False and "reposed" not in checks["capture_0"]
+    assert json.loads((tmp_path / "times.json").read_text()) == {"colmap capture_1 reposed": 1.5}
+    assert training_transforms(tmp_path, "capture_1") == reposed
+    assert training_transforms(tmp_path, "capture_0") == tmp_path / "datasets" / "capture_0" / "transforms.json"
+    assert "posed again without, then consistent" in bench._capture_check_cell(checks["capture_1"])
+    # done once: a second call changes nothing
+    bench.stage_check(layout, tmp_path)
+    assert len(posed) == 1
