@@ -271,10 +271,12 @@ def test_cli_copies_every_image_but_the_misposed_view_to_pose_again_and_never_ov
     assert all((folder / n).read_bytes() == (one_misposed / "images" / n).read_bytes() for n in names)
     assert f"wrote {folder} (11 images, without frame_00006.png)" in out and "ns-process-data images" in out
     assert sorted(p.name for p in one_misposed.iterdir()) == sorted([*before, REPOSE_FOLDER_NAME])
-    # a second run names the folder it will not overwrite, in one line
-    assert cli.run(cli.CheckCaptureCommand([one_misposed], write_images_to_repose=True)) == 1
-    err = capsys.readouterr().err
-    assert f"{folder}: already exists" in err and len(err.strip().splitlines()) == 1
+    # a second run names the folder it will not overwrite, in one line, before it checks or writes anything
+    other = shutil.copytree(one_misposed, one_misposed.parent / "other", ignore=shutil.ignore_patterns(folder.name))
+    assert cli.run(cli.CheckCaptureCommand([other, one_misposed], write_images_to_repose=True)) == 1
+    captured = capsys.readouterr()
+    assert f"{folder}: already exists" in captured.err and len(captured.err.strip().splitlines()) == 1
+    assert captured.out == "" and not (other / REPOSE_FOLDER_NAME).exists()
 
 
 def test_repose_images_refuses_names_not_in_the_images_folder_and_leaves_nothing(one_misposed, tmp_path, monkeypatch):

@@ -75,6 +75,11 @@ class CheckCaptureCommand:
         # every input read before anything is written
         checks = [(path, check_dataset(path), check_dataset_intrinsics(path), check_dataset_matches(path))
                   for path in self.data]  # fmt: skip
+        if self.write_images_to_repose:  # no capture's folder written while another's cannot be
+            for path, check, _, matches in checks:
+                out = dataset_file(path).parent / REPOSE_FOLDER_NAME
+                if matches.repose_without is not None and not check.folded and out.exists():
+                    raise ValueError(f"{out}: already exists (an earlier check wrote it?); remove it to write it again")
         for path, check, camera, matches in checks:
             if _report_matches(path, matches):
                 found = True
