@@ -71,6 +71,11 @@ MAX_REPOSE_SHARE = 0.1
 """Where no two sides show, the views that lie in every unexplained pair (:func:`pair_cover`) are named to be left out
 when the capture is posed again only when they are at most this share of the judged views: a few misposed views, not a
 fold through the capture (then another matcher, not fewer views)."""
+MIN_VIEW_UNEXPLAINED_SHARE = 0.5
+"""...and only when each of them has at least this share of its own judged pairs unexplained: a view posed wrong
+contradicts most views it matches, a view posed right contradicts only the misposed ones among them. Set after the
+cover had been seen to name the wrong views (drive-17 posed with one focal length: 9 views named, 3 of its 18
+misposed, each with at most 34% of its pairs unexplained; street-11's one misposed view: 72%)."""
 PAIR_ID_BASE = 2147483647
 """COLMAP's ``pair_id = PAIR_ID_BASE * image_id1 + image_id2`` (``image_id1 < image_id2``)."""
 
@@ -122,13 +127,19 @@ class MatchCheck:
     @cached_property
     def repose_without(self) -> tuple[str, ...] | None:
         """The views to leave out when a folded capture with no two sides is posed again: those that lie in every
-        unexplained pair (:func:`pair_cover`), when they are at most :data:`MAX_REPOSE_SHARE` of the judged views;
-        else None (not folded, two sides to train on, or too many views)."""
+        unexplained pair (:func:`pair_cover`), when they are at most :data:`MAX_REPOSE_SHARE` of the judged views and
+        each has at least :data:`MIN_VIEW_UNEXPLAINED_SHARE` of its own pairs unexplained; else None (not folded, two
+        sides to train on, too many views, or views that look posed right)."""
         if not self.folded or self.smaller_side is not None:
             return None
         cover = pair_cover(self.unexplained)
-        judged = {name for pair in self.explained + self.unexplained for name in pair}
-        return tuple(sorted(cover)) if len(cover) <= MAX_REPOSE_SHARE * len(judged) else None
+        unexplained = Counter(name for pair in self.unexplained for name in pair)
+        judged = unexplained + Counter(name for pair in self.explained for name in pair)
+        if len(cover) > MAX_REPOSE_SHARE * len(judged):
+            return None
+        if any(unexplained[name] < MIN_VIEW_UNEXPLAINED_SHARE * judged[name] for name in cover):
+            return None
+        return tuple(sorted(cover))
 
     def to_record(self) -> dict:
         smaller, repose = self.smaller_side, self.repose_without
