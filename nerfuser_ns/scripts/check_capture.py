@@ -75,10 +75,12 @@ class CheckCaptureCommand:
         # every input read before anything is written
         checks = [(path, check_dataset(path), check_dataset_intrinsics(path), check_dataset_matches(path))
                   for path in self.data]  # fmt: skip
+        # the captures to pose again without a few views (a fold the file order shows is trained on its larger side)
+        repose = {path: matches.repose_without for path, check, _, matches in checks
+                  if matches.repose_without is not None and not check.folded}  # fmt: skip
         if self.write_images_to_repose:  # no capture's folder written while another's cannot be
-            for path, check, _, matches in checks:
-                out = dataset_file(path).parent / REPOSE_FOLDER_NAME
-                if matches.repose_without is not None and not check.folded and out.exists():
+            for path in repose:
+                if (out := dataset_file(path).parent / REPOSE_FOLDER_NAME).exists():
                     raise ValueError(f"{out}: already exists (an earlier check wrote it?); remove it to write it again")
         for path, check, camera, matches in checks:
             if _report_matches(path, matches):
@@ -108,8 +110,8 @@ class CheckCaptureCommand:
                 CONSOLE.print(f"[yellow]{fold_warning}[/]")
                 CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
                 CONSOLE.print(f"  {camera_verdict}")
-            if matches.repose_without is not None and not check.folded:
-                self._repose(path, matches.repose_without)
+            if path in repose:
+                self._repose(path, repose[path])
             # the file order's sides where it sees the fold, else the matches' (unordered views)
             drop, found_by = (check.suspect, "file order") if check.folded else (matches.smaller_side, "matches")
             if not drop:
