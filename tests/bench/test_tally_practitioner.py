@@ -56,9 +56,11 @@ def test_summary_against_another_truth_leaves_out_the_cases_without_it():
 
 def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_path):
     first, second = tmp_path / "bench_practitioner_a.json", tmp_path / "bench_practitioner_b.json"
-    first.write_text(json.dumps([_record("street-1", 0.3), _record("object-centric-1", 0.08)]))
-    second.write_text(json.dumps([_record("street-1", 0.06, optimized=0.04, pose=0.03, content=0.02),
-                                  _record("room-3", 117.0, failure=True)]))  # fmt: skip
+    obj, street, room = (_record("object-centric-1", 0.08), _record("street-1", 0.06, optimized=0.04, pose=0.03,
+                                                                    content=0.02), _record("room-3", 117.0, True))
+    obj["blend_psnr"]["coverage"], street["blend_psnr"]["coverage"] = 20.5, 19.5  # Nearest 20 in both
+    first.write_text(json.dumps([_record("street-1", 0.3), obj]))
+    second.write_text(json.dumps([street, room]))
     rows = tally.collect([first, second])
     assert [(r["case"], src) for r, src in rows] == [("street-1", second), ("object-centric-1", first),
                                                      ("room-3", second)]  # fmt: skip
@@ -76,6 +78,8 @@ def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_
     assert "| layout | Nearest | IDW-Sample |" in text
     assert "| street | -1.00 (-1.00 to -1.00); best 0/1 | best 1/1 |" in text
     assert "| room |" not in text  # its one case failed: no blend method is judged on it
+    assert ("IDW-Sample >= Nearest on 3 of 3 cases with a blend; Coverage (ours) >= Nearest on 1 of the 2 that "
+            "scored it." in text)  # fmt: skip
     assert text.rstrip().endswith("3 case(s), 3 registered NeRF(s): median r_err 0.0800 deg, t_err 0.00800, "
                                   "s_err 0.00080; success rate 0.67.")  # fmt: skip
 
