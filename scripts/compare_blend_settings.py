@@ -30,12 +30,12 @@ class CompareBlendSettings:
     """Two gamma / tau settings of the same fused runs, side by side."""
 
     cases: list[Path] = field(default_factory=list)
-    """Case folders of ``scripts/bench_practitioner.py`` (each with ``eval.json`` and ``other``)."""
+    """Case folders of ``scripts/bench_practitioner.py``, each with the ``fuse`` stage's run and ``eval.json``."""
     gamma: float = 10.0
     """The other setting's gamma (default: the paper's Mission Bay)."""
     tau: float = 1.2
     """The other setting's tau."""
-    report: Path = Path("reports/blend_setting_auto.md")
+    report: Path = Path("reports/blend_setting_missionbay.md")
     """Where to write the markdown report."""
     note: str | None = None
     """A paragraph under the command (what the cases are: seen or fresh)."""
@@ -76,21 +76,24 @@ def main(cfg: CompareBlendSettings) -> None:
               "| case | setting | " + " | ".join(name for _, name in BLEND_COLUMNS) + " | IDW-Sample - Nearest | "
               "Coverage - best IDW |", "| --- | --- |" + " --- |" * (len(BLEND_COLUMNS) + 2)]
     summary = []
+    for case in cfg.cases:  # every case checked before the first ns-eval
+        for needed in (case / "eval.json", fused_config(case, None)):
+            if not needed.is_file():
+                raise SystemExit(f"compare_blend_settings: {needed} is missing; run the case's fuse stage first")
     for case in cfg.cases:
         model = runs.read_config(fused_config(case, None)).pipeline.model
-        own_label = f"gamma {model.gamma:g} / tau {model.tau} (the run's)"
-        rows = {}
-        if not (case / "eval.json").is_file():
-            raise SystemExit(f"compare_blend_settings: {case / 'eval.json'} is missing; run the fuse stage first")
+        own_label = f"gamma {model.gamma:g} / tau {model.tau or 'off'} (the run's)"
         other = (f"gamma {cfg.gamma:g} / tau {cfg.tau:g}", score_again(case, cfg.gamma, cfg.tau))
+        rows = []
         for label, path in ((own_label, case / "eval.json"), other):
-            s = rows[label] = _scores(path)
+            s = _scores(path)
+            rows.append(s)
             cells = " | ".join("-" if k not in s else f"{s[k][0]:.2f} / {s[k][1]:.3f}" for k, _ in BLEND_COLUMNS)
             d_near = s["idw_sample"][0] - s["nearest"][0]
             best = max(IDW, key=lambda k: s[k][0])
             d_cov = s["coverage"][0] - s[best][0] if "coverage" in s else float("nan")
             lines.append(f"| {case.name} | {label} | {cells} | {d_near:+.2f} | {d_cov:+.2f} |")
-        (a, b) = rows.values()
+        a, b = rows
         summary.append(f"- {case.name}: IDW-Sample {a['idw_sample'][0]:.2f} -> {b['idw_sample'][0]:.2f} dB "
                        f"({b['idw_sample'][0] - a['idw_sample'][0]:+.2f}; Nearest {a['nearest'][0]:.2f}), IDW-2D "
                        f"{b['idw_2d'][0] - a['idw_2d'][0]:+.2f}, IDW-3D {b['idw_3d'][0] - a['idw_3d'][0]:+.2f}, "

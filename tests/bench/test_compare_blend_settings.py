@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import yaml
@@ -51,9 +52,13 @@ def test_the_two_settings_side_by_side(compare, tmp_path):
     assert "- street-3: IDW-Sample 20.90 -> 21.10 dB (+0.20; Nearest 21.00), IDW-2D -0.20" in text
 
 
-def test_a_case_without_its_own_eval_is_one_line(compare, tmp_path):
+def test_a_case_without_its_eval_or_fused_run_is_one_line(compare, tmp_path):
     case = _case(tmp_path, "street-4", {k: 20.0 for k, _ in BLEND_COLUMNS}, None)
     (case / "eval.json").unlink()
-    with pytest.raises(SystemExit, match="street-4/eval.json is missing; run the fuse stage first"):
+    with pytest.raises(SystemExit, match="street-4/eval.json is missing; run the case's fuse stage first"):
+        compare.main(compare.CompareBlendSettings(cases=[case], report=tmp_path / "r.md"))
+    (case / "eval.json").write_text("{}")
+    shutil.rmtree(case / "fused")
+    with pytest.raises(SystemExit, match="street-4/fused/.*/config.yml is missing"):  # checked before any ns-eval
         compare.main(compare.CompareBlendSettings(cases=[case], report=tmp_path / "r.md"))
     assert not (tmp_path / "r.md").exists()
