@@ -53,6 +53,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     SOURCE_FRAMES_NAME,
     TRUTH_BLENDS,
     appearance_evals,
+    blend_table,
     capture_ground_truth,
     captures_from,
     case_layout,
@@ -643,14 +644,6 @@ def _attempts(choice: dict | None, ref: int, gt: list[dict]) -> list[dict]:
     return out
 
 
-def _blend_table(eval_json: Path) -> dict[str, dict]:
-    """``blend_psnr`` / ``blend_ssim`` of every blend method (:data:`BLEND_COLUMNS`) from one ``ns-eval`` JSON."""
-    results = json.loads(eval_json.read_text())["results"]
-    return {f"blend_{metric}": {k: results.get(f"{metric}_{k}", results.get(metric) if k == "idw_sample" else None)
-                                for k, _ in BLEND_COLUMNS}
-            for metric in ("psnr", "ssim")}  # fmt: skip
-
-
 def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     """The case's record for the reports; ``gt``: :func:`capture_ground_truth` of the case."""
     captures = [{k: v for k, v in g.items() if not k.startswith("nerf_to_world")} for g in gt]
@@ -678,7 +671,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     eval_json = case_dir / "eval.json"
     if eval_json.is_file():
         record["fused_appearance_matching"] = fused_appearance_matching(case_dir)
-        record.update(_blend_table(eval_json))
+        record.update(blend_table(eval_json))
     content = case_dir / "content_truth.json"
     if content.is_file():
         found = json.loads(content.read_text())
@@ -691,7 +684,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
             if solution is not None:
                 key = "errors_content" if reg_path.is_file() else "rejected_errors_content"
                 record["registration"][key] = _errors(solution, gt, "nerf_to_world_content")
-    truth_blends = {label: _blend_table(path) for label, path in truth_evals(case_dir).items() if path.is_file()}
+    truth_blends = {label: blend_table(path) for label, path in truth_evals(case_dir).items() if path.is_file()}
     if truth_blends:
         record["truth_blends"] = truth_blends
     label = direct_label(case_dir)
@@ -701,7 +694,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
                   if all(t in g for g in gt)]  # fmt: skip
         record["direct"] = {"label": label, "errors": {t: _errors(other, gt, t) for t in truths},
                             "pairs": (other.get("direct") or {}).get("pairs"), "timings_s": other.get("timings_s"),
-                            "blends": {placement: _blend_table(path) for placement, path in
+                            "blends": {placement: blend_table(path) for placement, path in
                                        (("stored", case_dir / f"eval_{label}.json"),
                                         ("content", case_dir / f"eval_content_{label}.json")) if path.is_file()}}
     held_out = {}

@@ -8,7 +8,6 @@ IDW-Sample minus Nearest, and the coverage blend (ours) minus the best IDW metho
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -19,7 +18,7 @@ from pathlib import Path
 import tyro
 
 from nerfuser_ns import runs
-from nerfuser_ns.bench.practitioner_cases import BLEND_COLUMNS, fused_config
+from nerfuser_ns.bench.practitioner_cases import BLEND_COLUMNS, blend_table, fused_config
 from nerfuser_ns.files import write_text_atomic
 
 IDW = ("idw_2d", "idw_3d", "idw_sample")
@@ -42,8 +41,9 @@ class CompareBlendSettings:
 
 
 def _scores(path: Path) -> dict[str, tuple[float, float]]:
-    r = json.loads(path.read_text())["results"]
-    return {k: (r[f"psnr_{k}"], r[f"ssim_{k}"]) for k, _ in BLEND_COLUMNS if f"psnr_{k}" in r}
+    """(PSNR, SSIM) per blend method that ``ns-eval`` scored."""
+    table = blend_table(path)
+    return {k: (p, table["blend_ssim"][k]) for k, p in table["blend_psnr"].items() if p is not None}
 
 
 def score_again(case: Path, gamma: float, tau: float) -> Path:

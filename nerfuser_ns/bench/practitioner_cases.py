@@ -109,6 +109,15 @@ def registration_with_transforms(source: Path, transforms: list[np.ndarray], nam
     return write_registration(record, source.with_name(name))
 
 
+def blend_table(eval_json: Path) -> dict[str, dict]:
+    """``blend_psnr`` / ``blend_ssim`` of every blend method (:data:`BLEND_COLUMNS`) from one ``ns-eval`` JSON (None
+    where it has no score; a run scored before ``render_all_methods`` gives its one score as IDW-Sample's)."""
+    results = json.loads(eval_json.read_text())["results"]
+    return {f"blend_{metric}": {k: results.get(f"{metric}_{k}", results.get(metric) if k == "idw_sample" else None)
+                                for k, _ in BLEND_COLUMNS}
+            for metric in ("psnr", "ssim")}  # fmt: skip
+
+
 def fused_appearance_matching(case_dir: Path) -> bool | None:
     """Whether the ``fuse`` stage's run (the fused model's defaults when it ran) had appearance matching on; None
     before that stage. Read from the run's config: an ``NERFUSER_APPEARANCE_MATCHING`` override at ``ns-eval`` time
