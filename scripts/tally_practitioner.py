@@ -111,8 +111,7 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
                      for k, _ in columns]  # fmt: skip
             lines.append(f"| {layout} | " + " | ".join(cells) + " |")
     blends = summary.idw_sample_over_nearest
-    covered = [r["blend_psnr"]["coverage"] >= r["blend_psnr"]["nearest"] for r in records
-               if (r.get("blend_psnr") or {}).get("coverage") is not None]  # fmt: skip
+    covered = summary.coverage_over_nearest
     lines += ["", f"IDW-Sample >= Nearest on {sum(blends)} of {len(blends)} cases with a blend; Coverage (ours) >= "
               f"Nearest on {sum(covered)} of the {len(covered)} that scored it.", "",
               "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok else 'NOT met'}"

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -256,6 +256,8 @@ class Summary:
     """Median ``r_err_deg`` / ``t_err`` / ``s_err`` over the NeRFs with errors (NaN when none)."""
     idw_sample_over_nearest: list[bool]
     """Per case with a blend: IDW-Sample >= Nearest."""
+    coverage_over_nearest: list[bool] = field(default_factory=list)
+    """Per case with a ``coverage`` (ours) score: coverage >= Nearest."""
 
     def line(self, prefix: str = "") -> str:
         return (f"{prefix}{self.cases} case(s), {self.nerfs} registered NeRF(s): median r_err "
@@ -286,8 +288,9 @@ def summarise(records: list[dict], errors: str = "errors") -> Summary:
     ok = [e for e in scored if e is not None]
     median = {k: float(np.median([e[k] for e in ok])) if ok else float("nan") for k in ("r_err_deg", "t_err", "s_err")}
     success = sum(not e["failure"] for e in ok) / max(len(scored), 1)
-    blends = [r["blend_psnr"]["idw_sample"] >= r["blend_psnr"]["nearest"] for r in rows if r.get("blend_psnr")]
-    return Summary(len(rows), len(scored), success, median, blends)
+    blends = [r["blend_psnr"] for r in rows if r.get("blend_psnr")]
+    return Summary(len(rows), len(scored), success, median, [b["idw_sample"] >= b["nearest"] for b in blends],
+                   [b["coverage"] >= b["nearest"] for b in blends if b.get("coverage") is not None])  # fmt: skip
 
 
 @dataclass
