@@ -79,7 +79,7 @@ from nerfuser_ns.bench.practitioner_cases import (
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
-from nerfuser_ns.capture_check import LARGER_SIDE_NAME, REPOSE_FOLDER_NAME, check_dataset
+from nerfuser_ns.capture_check import LARGER_SIDE_NAME, REPOSE_FOLDER_NAME, check_dataset, check_dataset_intrinsics
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.match_check import check_dataset_matches
 from nerfuser_ns.registration import RegistrationConfig, RegistrationFailed, read_registration
@@ -172,9 +172,10 @@ class BenchPractitioner:
     vertical focal length drifted). Case folders get the suffix ``-simple-pinhole``; such a folder shares the images
     and test views of the perspective one (never its COLMAP datasets)."""
     check_captures: bool = False
-    """Before training, run ``ns-nerfuser-check-capture --write-larger-side`` on each capture's COLMAP dataset, as a
-    user following its advice: a capture it finds folded trains on its larger side. Case folders get the suffix
-    ``-checked``."""
+    """Before training, run ``ns-nerfuser-check-capture --write-larger-side --write-images-to-repose`` on each
+    capture's COLMAP dataset and follow its advice as a user would: a capture it finds folded trains on its larger
+    side, one with a few misposed views is posed again without them, one whose camera drifted is posed again with one
+    focal length (:func:`stage_check`). Case folders get the suffix ``-checked``."""
     share_captures: bool = True
     """Before the ``scene`` stage of a case folder with no images yet, copy the images, COLMAP datasets and test views
     of the same case trained the other way (the other ``--camera-optimizer`` folder), when that folder has them all:
@@ -326,9 +327,11 @@ def _training_data(case_dir: Path, capture: str) -> Path:
 
 def stage_check(layout, case_dir: Path, matching_method: str = "exhaustive", camera_type: str = "perspective") -> None:
     """The user's guide before training: ``ns-nerfuser-check-capture --write-larger-side --write-images-to-repose`` on
-    every capture's dataset (exit 1 means a capture is folded: expected, not an error); a capture whose check named a
-    few misposed views is posed again without them (as the first time, into :func:`reposed_transforms`) and checked
-    again. What it found goes to ``capture_check.json``."""
+    every capture's dataset (exit 1 means a capture is folded or drifted: expected, not an error), then its advice
+    followed: a capture whose check named a few misposed views is posed again without them, and a capture whose
+    camera drifted is posed again with one focal length (``--camera-type simple_pinhole``, every view, or every view
+    but the named ones where both apply), each as the first time into :func:`reposed_transforms`, and checked again.
+    What it found goes to ``capture_check.json``."""
     out = case_dir / "capture_check.json"
     if out.is_file():
         return
@@ -338,18 +341,22 @@ def stage_check(layout, case_dir: Path, matching_method: str = "exhaustive", cam
     _check_captures(datasets, case_dir / "check_capture.log", "--write-larger-side", "--write-images-to-repose")
     checks = {cap.name: _check_record(d) for cap, d in zip(layout.captures, datasets, strict=True)}
     for cap, d in zip(layout.captures, datasets, strict=True):
-        images = d / REPOSE_FOLDER_NAME
-        if not images.is_dir():
+        without_views = (d / REPOSE_FOLDER_NAME).is_dir()
+        drifted = checks[cap.name]["camera"]["drifted"] and camera_type != "simple_pinhole"
+        if not (without_views or drifted):
             continue
+        images = d / REPOSE_FOLDER_NAME if without_views else images_done(case_dir, cap.name).parent
+        camera = "simple_pinhole" if drifted else camera_type
         reposed = reposed_transforms(case_dir, cap.name)
         if not reposed.is_file():
-            seconds = _process_data(images, reposed, matching_method, camera_type,
+            seconds = _process_data(images, reposed, matching_method, camera,
                                     case_dir / f"colmap_{cap.name}_reposed.log")  # fmt: skip
             _add_time(case_dir, f"colmap {cap.name} reposed", seconds)
-        # ns-process-data numbered the images afresh; the truth reads the first dataset's numbers
-        write_text_atomic(reposed.parent / SOURCE_FRAMES_NAME, json.dumps(source_frames(images), indent=1) + "\n")
+        if without_views:  # numbered afresh, a view left out shifting the rest; the truth reads the first numbers
+            write_text_atomic(reposed.parent / SOURCE_FRAMES_NAME, json.dumps(source_frames(images), indent=1) + "\n")
         _check_captures([reposed.parent], case_dir / f"check_capture_{cap.name}_reposed.log", "--write-larger-side")
-        checks[cap.name]["reposed"] = _check_record(reposed.parent)
+        checks[cap.name]["reposed"] = {**_check_record(reposed.parent), "camera_type": camera,
+                                       "without_views": without_views, "for_drift": drifted}  # fmt: skip
     write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
 
 
@@ -365,6 +372,7 @@ def _check_captures(datasets: list[Path], log: Path, *options: str) -> None:
 def _check_record(dataset: Path) -> dict:
     larger = dataset / LARGER_SIDE_NAME
     return {**check_dataset(dataset).to_record(), "matches": check_dataset_matches(dataset).to_record(),
+            "camera": check_dataset_intrinsics(dataset).to_record(),
             "larger_side": json.loads(larger.read_text())["nerfuser_larger_side"] if larger.is_file() else None}
 
 
@@ -767,16 +775,30 @@ def _capture_check_cell(c: dict) -> str:
              f"folded by file order, {c['suspect_views']} of {c['num_views']} views suspect{trained}" if c["folded"]
              else "not folded by file order")  # fmt: skip
     matches = c.get("matches")
+    camera = c.get("camera")  # records of before the camera was recorded here: not said
+    drift = ("" if camera is None else f"; camera drifted (fy/fx {camera['aspect']:.3f})" if camera["drifted"]
+             else f"; camera fy/fx {camera['aspect']:.3f}")  # fmt: skip
     if not matches or not matches["checked"]:
-        return order
+        return order + drift + _reposed_cell(c)
     if matches.get("repose_without") and "reposed" in c:
-        again = c["reposed"]["matches"]
-        verdict = ("folded again" if again["folded"] else "consistent") if again["checked"] else "not checked"
-        return (f"{order}; the match check named {', '.join(matches['repose_without'])} in every unexplained pair: "
-                f"posed again without, then {verdict} by the match check "
-                f"({again['unexplained_pairs']} of {again['pairs']} pairs unexplained)")  # fmt: skip
-    return order + ("; folded by the match check, no sides to train on: trained on every view" if matches["folded"]
-                    else "; the match check found it consistent")  # fmt: skip
+        return (f"{order}; the match check named {', '.join(matches['repose_without'])} in every unexplained pair"
+                f"{drift}{_reposed_cell(c)}")  # fmt: skip
+    return (order + ("; folded by the match check, no sides to train on: trained on every view" if matches["folded"]
+                     else "; the match check found it consistent") + drift + _reposed_cell(c))  # fmt: skip
+
+
+def _reposed_cell(c: dict) -> str:
+    """How a checked capture was posed again (``capture_check.json``'s ``reposed``), and what the check said then."""
+    again = c.get("reposed")
+    if again is None:
+        return ""
+    how = ["without those views"] if again.get("without_views", True) else []
+    if again.get("for_drift", False):
+        how.append("with one focal length (--camera-type simple_pinhole)")
+    m = again["matches"]
+    verdict = ("folded again" if m["folded"] else "consistent") if m["checked"] else "not checked"
+    return (f": posed again {' and '.join(how)}, then {verdict} by the match check "
+            f"({m['unexplained_pairs']} of {m['pairs']} pairs unexplained)")
 
 
 def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 
 import numpy as np
@@ -321,7 +322,51 @@ def test_the_guides_check_poses_a_capture_again_without_the_view_it_names(load_s
     assert json.loads((tmp_path / "times.json").read_text()) == {"colmap capture_1 reposed": 1.5}
     assert training_transforms(tmp_path, "capture_1") == reposed
     assert training_transforms(tmp_path, "capture_0") == tmp_path / "datasets" / "capture_0" / "transforms.json"
-    assert "posed again without, then consistent" in bench._capture_check_cell(checks["capture_1"])
+    assert "posed again without those views, then consistent" in bench._capture_check_cell(checks["capture_1"])
     # done once: a second call changes nothing
     bench.stage_check(layout, tmp_path)
+    assert len(posed) == 1
+
+
+def test_the_guides_check_poses_a_drifted_capture_again_with_one_focal_length(load_script, tmp_path, monkeypatch):
+    """``--check-captures``: a capture whose COLMAP camera drifted (fy/fx 1.2) is posed again from all its images with
+    ``--camera-type simple_pinhole``, as the check advises, and trained on that; its views keep their numbers (no
+    source map: nothing was left out). A capture already posed with one focal length is not posed again."""
+    bench = load_script("bench_practitioner")
+    layout = case_layout("street:1")
+    for cap, aspect in zip(layout.captures, (1.2, 1.0), strict=True):
+        data = write_colmap_capture(tmp_path / "datasets" / cap.name, folded=False)
+        meta = json.loads((data / "transforms.json").read_text())
+        (data / "transforms.json").write_text(json.dumps({**meta, "fl_y": meta["fl_x"] * aspect}))
+        done = bench.images_done(tmp_path, cap.name)
+        done.parent.mkdir(parents=True)
+        for i in range(NUM_VIEWS):
+            (done.parent / f"view_{i:05d}.png").write_bytes(bytes([i]))
+        done.write_text("")
+    posed = []
+
+    def process_data(images, out, matching_method, camera_type, log):
+        posed.append((images, out, matching_method, camera_type))
+        write_colmap_capture(out.parent, folded=False)
+        return 2.0
+
+    monkeypatch.setattr(bench, "_process_data", process_data)
+    bench.stage_check(layout, tmp_path, "exhaustive", "perspective")
+    reposed = reposed_transforms(tmp_path, "capture_0")
+    assert posed == [(tmp_path / "images" / "capture_0", reposed, "exhaustive", "simple_pinhole")]
+    assert not (reposed.parent / "source_frames.json").exists()
+    checks = json.loads((tmp_path / "capture_check.json").read_text())
+    assert checks["capture_0"]["camera"]["drifted"] and not checks["capture_1"]["camera"]["drifted"]
+    again = checks["capture_0"]["reposed"]
+    assert again["camera_type"] == "simple_pinhole" and again["for_drift"] and not again["without_views"]
+    assert not again["camera"]["drifted"]
+    assert training_transforms(tmp_path, "capture_0") == reposed and "reposed" not in checks["capture_1"]
+    cell = bench._capture_check_cell(checks["capture_0"])
+    assert "camera drifted (fy/fx 1.200): posed again with one focal length (--camera-type simple_pinhole), then "\
+        "consistent by the match check" in cell
+    assert "camera fy/fx 1.000" in bench._capture_check_cell(checks["capture_1"])
+    # a case posed with one focal length from the start: its drifted-looking file is not posed again
+    other = tmp_path / "one_focal"
+    shutil.copytree(tmp_path / "datasets", other / "datasets", ignore=shutil.ignore_patterns("capture_0_reposed"))
+    bench.stage_check(layout, other, "exhaustive", "simple_pinhole")
     assert len(posed) == 1
