@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from nerfuser_ns.bench.practitioner_cases import BLEND_COLUMNS, appearance_evals
+from nerfuser_ns.bench.practitioner_cases import BLEND_COLUMNS, appearance_evals, blend_table
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import read_registration
 
@@ -50,8 +50,8 @@ def _case(folder: Path) -> dict:
         if setting not in evals:
             raise SystemExit(f"report_practitioner_appearance: {folder} has no {label} ns-eval; run "
                              f"bench_practitioner.py with --stages fuse {label} on that case")  # fmt: skip
-        results = json.loads(evals[setting].read_text())["results"]
-        out[label] = {k: [results.get(f"psnr_{k}"), results.get(f"ssim_{k}")] for k, _ in BLEND_COLUMNS}
+        table = blend_table(evals[setting])
+        out[label] = {k: [table["blend_psnr"][k], table["blend_ssim"][k]] for k, _ in BLEND_COLUMNS}
     reg = read_registration(folder / "registration.json")
     out["maps"] = [None if n.get("colour_to_reference") is None
                    else np.diag(np.asarray(n["colour_to_reference"])[:, :3]).round(3).tolist()
