@@ -764,27 +764,31 @@ def _posed_cell(c: dict) -> str:
 
 def _capture_check_cell(c: dict) -> str:
     """What ``ns-nerfuser-check-capture --write-larger-side`` found for one capture (``capture_check.json``; records
-    before the match check was recorded there carry the file order's verdict alone)."""
+    before the match check was recorded there carry the file order's verdict alone), and how it was posed again."""
+    camera = c.get("camera")  # records of before the camera was recorded here: not said
+    drift = ("" if camera is None else f"; camera drifted (fy/fx {camera['aspect']:.3f})" if camera["drifted"]
+             else f"; camera fy/fx {camera['aspect']:.3f}")  # fmt: skip
+    reposed = "reposed" in c  # then trained on what it was posed again into, not on this dataset
     side = c.get("larger_side")
     if side is not None:
-        return (f"folded (by the {side.get('found_by', 'file order')}), {len(side['dropped'])} of {c['num_views']} "
-                "views dropped, trained on the larger side")  # fmt: skip
+        dropped = f"folded (by the {side.get('found_by', 'file order')}), {len(side['dropped'])} of {c['num_views']}"
+        return (f"{dropped} views on its smaller side{drift}{_reposed_cell(c)}" if reposed
+                else f"{dropped} views dropped, trained on the larger side{drift}")  # fmt: skip
     # records of before the match check: the stage wrote the larger side of every capture the file order folded
     trained = ", trained on the larger side" if "larger_side" not in c else ""
     order = ("not checked by file order (no sequence)" if not c["checked"] else
              f"folded by file order, {c['suspect_views']} of {c['num_views']} views suspect{trained}" if c["folded"]
              else "not folded by file order")  # fmt: skip
     matches = c.get("matches")
-    camera = c.get("camera")  # records of before the camera was recorded here: not said
-    drift = ("" if camera is None else f"; camera drifted (fy/fx {camera['aspect']:.3f})" if camera["drifted"]
-             else f"; camera fy/fx {camera['aspect']:.3f}")  # fmt: skip
     if not matches or not matches["checked"]:
         return order + drift + _reposed_cell(c)
-    if matches.get("repose_without") and "reposed" in c:
-        return (f"{order}; the match check named {', '.join(matches['repose_without'])} in every unexplained pair"
-                f"{drift}{_reposed_cell(c)}")  # fmt: skip
-    return (order + ("; folded by the match check, no sides to train on: trained on every view" if matches["folded"]
-                     else "; the match check found it consistent") + drift + _reposed_cell(c))  # fmt: skip
+    if matches.get("repose_without") and reposed:
+        verdict = f"; the match check named {', '.join(matches['repose_without'])} in every unexplained pair"
+    elif matches["folded"]:
+        verdict = "; folded by the match check, no sides" + ("" if reposed else " to train on: trained on every view")
+    else:
+        verdict = "; the match check found it consistent"
+    return order + verdict + drift + _reposed_cell(c)
 
 
 def _reposed_cell(c: dict) -> str:
