@@ -755,7 +755,7 @@ def _posed_cell(c: dict) -> str:
     cell = f"{c['posed_by_colmap']}/{c['views']}"
     extra = [f"{c['pose_tie_misposed_views']} misposed"] if c.get("pose_tie_misposed_views") else []
     if "reposed_posed_by_colmap" in c:
-        extra.append(f"posed again without the views the check named: {c['reposed_posed_by_colmap']} posed, "
+        extra.append(f"posed again as the check advised: {c['reposed_posed_by_colmap']} posed, "
                      f"{c['reposed_misposed_views']} misposed")  # fmt: skip
     if c.get("trained_views", c["posed_by_colmap"]) != c["posed_by_colmap"]:
         extra.append(f"trained on {c['trained_views']}")
