@@ -290,6 +290,18 @@ def test_the_capture_check_line_says_which_check_found_the_fold(load_script):
         "not checked by file order (no sequence); the match check found it consistent")
 
 
+def _posing_again(posed: list, seconds: float):
+    """A stand-in for the benchmark's ``_process_data``: records each call in ``posed`` and writes a consistent
+    COLMAP capture where ``ns-process-data`` would."""
+
+    def process_data(images, out, matching_method, camera_type, log):
+        posed.append((images, out, matching_method, camera_type))
+        write_colmap_capture(out.parent, folded=False)
+        return seconds
+
+    return process_data
+
+
 def test_the_guides_check_poses_a_capture_again_without_the_view_it_names(load_script, tmp_path, monkeypatch):
     """``--check-captures``: the real ``ns-nerfuser-check-capture`` names capture_1's one misposed view and copies the
     other images; ``ns-process-data`` (a stand-in here: a consistent reconstruction) poses them into
@@ -302,13 +314,7 @@ def test_the_guides_check_poses_a_capture_again_without_the_view_it_names(load_s
         for i in range(NUM_VIEWS):
             (data / "images" / f"frame_{i + 1:05d}.png").write_bytes(bytes([i]))
     posed = []
-
-    def process_data(images, out, matching_method, camera_type, log):
-        posed.append((images, out, matching_method, camera_type))
-        write_colmap_capture(out.parent, folded=False)
-        return 1.5
-
-    monkeypatch.setattr(bench, "_process_data", process_data)
+    monkeypatch.setattr(bench, "_process_data", _posing_again(posed, seconds=1.5))
     bench.stage_check(layout, tmp_path, "sequential", "simple_pinhole")
     images = tmp_path / "datasets" / "capture_1" / "images_to_repose"
     reposed = reposed_transforms(tmp_path, "capture_1")
@@ -344,13 +350,7 @@ def test_the_guides_check_poses_a_drifted_capture_again_with_one_focal_length(lo
             (done.parent / f"view_{i:05d}.png").write_bytes(bytes([i]))
         done.write_text("")
     posed = []
-
-    def process_data(images, out, matching_method, camera_type, log):
-        posed.append((images, out, matching_method, camera_type))
-        write_colmap_capture(out.parent, folded=False)
-        return 2.0
-
-    monkeypatch.setattr(bench, "_process_data", process_data)
+    monkeypatch.setattr(bench, "_process_data", _posing_again(posed, seconds=2.0))
     bench.stage_check(layout, tmp_path, "exhaustive", "perspective")
     reposed = reposed_transforms(tmp_path, "capture_0")
     assert posed == [(tmp_path / "images" / "capture_0", reposed, "exhaustive", "simple_pinhole")]
