@@ -15,7 +15,8 @@ from typing import Any
 
 import torch
 
-from nerfuser_ns.blending import BLEND_METHODS, PAPER_OBJECT_CENTRIC
+from nerfuser_ns.blend_choice import AUTO, BLEND_CHOICES
+from nerfuser_ns.blending import PAPER_OBJECT_CENTRIC
 from nerfuser_ns.coverage import CoverageParams
 from nerfuser_ns.runtime import OFF_WORDS, ON_WORDS
 
@@ -49,7 +50,9 @@ class BlendSettings:
     :meth:`from_config` or :meth:`replace`; nothing validates per forward pass.
     """
 
-    method: str = "idw-sample"
+    method: str = AUTO
+    """A blend method, or ``auto`` (ours): the fused model resolves it once from the training cameras
+    (:mod:`nerfuser_ns.blend_choice`)."""
     gamma: float = PAPER_OBJECT_CENTRIC[0]
     tau: float | None = PAPER_OBJECT_CENTRIC[1]
     """None (or 0 where given): the distance test is off."""
@@ -91,8 +94,8 @@ class BlendSettings:
 
     def checked(self, num_nerfs: int | None = None) -> BlendSettings:
         """This value with ``tau = 0`` read as off, or ValueError (one line) naming what is wrong."""
-        if self.method not in BLEND_METHODS:
-            raise ValueError(f"nerfuser: unknown blend method {self.method!r}; choose one of {BLEND_METHODS}")
+        if self.method not in BLEND_CHOICES:
+            raise ValueError(f"nerfuser: unknown blend method {self.method!r}; choose one of {BLEND_CHOICES}")
         if not (self.gamma >= 0):  # also rejects NaN
             raise ValueError(f"nerfuser: gamma must be >= 0, got {self.gamma}")
         if self.tau is not None and self.tau != 0 and not (self.tau >= 1):

@@ -13,7 +13,8 @@ Per ray batch (rays in the COMMON frame):
 3. the NeRFs are blended with the selected method (``nerf``, ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample``; ours:
    ``coverage``, IDW-Sample weighted by each NeRF's training-camera coverage, :mod:`nerfuser_ns.coverage`, and
    ``coverage-3d``, each NeRF's own rendering weighted by that coverage at its surface point), every NeRF keeping its
-   own background term (nerfacto "last_sample").
+   own background term (nerfacto "last_sample"). ``auto`` (ours, the default) is ``idw-sample`` or ``coverage``,
+   chosen once from the training cameras (:mod:`nerfuser_ns.blend_choice`).
 
 Appearance matching (ours, :mod:`nerfuser_ns.appearance`): each NeRF's sample and background colours go through its
 colour map to the reference capture's colours (from the registration file; identity when absent) before blending, when
@@ -47,6 +48,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
+from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerCheckbox, ViewerDropdown, ViewerNumber
 from torch import Tensor
 from torch.nn import Parameter
@@ -66,8 +68,9 @@ from nerfuser_ns.adapters import (
     make_adapter,
 )
 from nerfuser_ns.appearance import IDENTITY, apply_colour_map
+from nerfuser_ns.blend_choice import AUTO, BLEND_CHOICES, BlendChoice, choose_blend_method
 from nerfuser_ns.blend_settings import SHARE_PALETTE, BlendSettings
-from nerfuser_ns.blending import BLEND_METHODS, COVERAGE_METHODS, PAPER_OBJECT_CENTRIC, BlendMethod
+from nerfuser_ns.blending import BLEND_METHODS, COVERAGE_METHODS, PAPER_OBJECT_CENTRIC
 from nerfuser_ns.coverage import CameraIndex, CoverageParams
 from nerfuser_ns.registration.record import TrainingCameras
 from nerfuser_ns.runs import load_run, read_config
@@ -138,11 +141,12 @@ class NerfuserModelConfig(ModelConfig):
     enable_collider: bool = False
     """Off: each sub-model applies its own collider in its own frame (what it would do itself). If the incoming
     rays already carry nears/fars, they are mapped into each NeRF's frame instead."""
-    blend_method: BlendMethod = "idw-sample"
-    """``nerf`` (one NeRF), ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample`` (NeRFuser), ``coverage`` (ours:
-    IDW-Sample weighted by each NeRF's training-camera coverage; IDW-Sample when a NeRF's cameras are unknown) or
-    ``coverage-3d`` (ours: each NeRF's own rendering weighted by that coverage at its surface point; IDW-2D without
-    the cameras)."""
+    blend_method: BlendChoice = "auto"
+    """``auto`` (ours, the default: ``idw-sample`` when every NeRF's training cameras look at a centre, as around
+    objects, ``coverage`` otherwise, as along a street; see nerfuser_ns.blend_choice), ``nerf`` (one NeRF),
+    ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample`` (NeRFuser), ``coverage`` (ours: IDW-Sample weighted by each
+    NeRF's training-camera coverage; IDW-Sample when a NeRF's cameras are unknown) or ``coverage-3d`` (ours: each
+    NeRF's own rendering weighted by that coverage at its surface point; IDW-2D without the cameras)."""
     gamma: float = PAPER_OBJECT_CENTRIC[0]
     """IDW blending rate (w ~ d^-gamma); 0: mean, inf: nearest. The paper uses 5 (objects), 10 (street)."""
     tau: float | None = PAPER_OBJECT_CENTRIC[1]
@@ -236,6 +240,8 @@ class NerfuserModel(Model):
         self.nerf_cameras = [_camera_index(e[3] if len(e) > 3 else None, t) for e, t in zip(entries, T, strict=True)]
         self._cameras_on: dict[torch.device, list[CameraIndex | None]] = {}
         self._coverage_warned = False
+        # What ``auto`` renders with: decided once, from the cameras alone.
+        self.auto_method, self.auto_reason = choose_blend_method(self.nerf_cameras, self.nerf_names)
         maps = [None if len(e) < 5 or e[4] is None else np.asarray(e[4], dtype=np.float64) for e in entries]
         for name, m in zip(self.nerf_names, maps, strict=True):
             if m is not None and (m.shape != (3, 4) or not np.isfinite(m).all()):
@@ -246,6 +252,8 @@ class NerfuserModel(Model):
 
         # Render-time settings: one checked value, changed only through set_blend (viewer, sweeps, attributes).
         self.blend_settings = BlendSettings.from_config(self.config).checked(self.num_nerfs)
+        if self.blend_settings.method == AUTO:
+            CONSOLE.print(f"nerfuser: blend method auto -> {self.auto_reason}")
         self._add_viewer_controls()
 
         from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity  # lazy/offline after runtime.install
@@ -279,6 +287,11 @@ class NerfuserModel(Model):
     appearance_matching = property(lambda self: self.blend_settings.appearance_matching,
                                    lambda self, v: self.set_blend(appearance_matching=v))  # fmt: skip
 
+    @property
+    def active_method(self) -> str:
+        """The blend method rendered now: the setting, with ``auto`` resolved (:attr:`auto_method`)."""
+        return self.auto_method if self.blend_method == AUTO else self.blend_method
+
     def _reference_options(self) -> list[str]:
         """The reference NeRF control's choices: "index: name", so equal names stay distinct."""
         return [f"{i}: {name}" for i, name in enumerate(self.nerf_names)]
@@ -310,7 +323,8 @@ class NerfuserModel(Model):
         values = self.blend_control_values()
         controls = {
             "blend_method": ViewerDropdown(
-                "NeRFuser blend method", values["blend_method"], list(BLEND_METHODS), cb_hook=set_method
+                "NeRFuser blend method", values["blend_method"], list(BLEND_CHOICES), cb_hook=set_method,
+                hint=f"auto: {self.auto_reason}",
             ),
             "reference_nerf": ViewerDropdown(
                 "NeRFuser reference NeRF", values["reference_nerf"], reference_options, cb_hook=set_reference
@@ -381,9 +395,9 @@ class NerfuserModel(Model):
         return out
 
     def _methods(self) -> list[str]:
-        methods = list(BLEND_METHODS) if self.config.render_all_methods else [self.blend_method]
-        if self.blend_method not in methods:
-            methods.append(self.blend_method)
+        methods = list(BLEND_METHODS) if self.config.render_all_methods else [self.active_method]
+        if self.active_method not in methods:
+            methods.append(self.active_method)
         return methods
 
     def _usage(
@@ -487,7 +501,7 @@ class NerfuserModel(Model):
         results = blending.blend(methods, starts_t, ends_t, p, c, bg, origins, directions, nerf_origins[ids],
                                  settings, reference=ids.index(ref) if ref in ids else 0, cameras=cameras,
                                  pixel_widths=pixel_widths)  # fmt: skip
-        main = results[self.blend_method]
+        main = results[self.active_method]
         outputs = {
             "rgb": main["rgb"],
             "accumulation": main["accumulation"][..., None],

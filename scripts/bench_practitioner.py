@@ -53,6 +53,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     SOURCE_FRAMES_NAME,
     TRUTH_BLENDS,
     appearance_evals,
+    auto_blend_choice,
     blend_table,
     capture_ground_truth,
     captures_from,
@@ -76,6 +77,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     test_transforms,
     training_transforms,
     truth_evals,
+    with_auto,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
@@ -680,6 +682,8 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     if eval_json.is_file():
         record["fused_appearance_matching"] = fused_appearance_matching(case_dir)
         record.update(blend_table(eval_json))
+        if reg_path.is_file():
+            record["auto_blend"] = auto_blend_choice(reg_path)
     content = case_dir / "content_truth.json"
     if content.is_file():
         found = json.loads(content.read_text())
@@ -894,6 +898,14 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         if b:
             mark = " *matched*" if r.get("fused_appearance_matching") else ""
             lines.append(f"| {r['case']}{mark} | {_psnr_cells(b)} |")
+    chosen = [r for r in records if r.get("auto_blend") and r.get("blend_psnr")]
+    if chosen:
+        lines += ["", "The blend method `auto` (ours, the default of `ns-train nerfuser` and the viewer) renders with, "
+                  "from the registration file's training cameras:", ""]
+        for r in chosen:
+            score = with_auto(r)["blend_psnr"]["auto"]
+            psnr = "-" if score is None else f"{score:.2f}"
+            lines.append(f"- {r['case']}: {r['auto_blend']['reason']}; PSNR {psnr}")
     lines += _truth_blend_section(records)
     lines += _direct_section(records)
     lines += _held_out_section(records)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import tyro
 
-from nerfuser_ns.bench.practitioner_cases import BLEND_COLUMNS, blend_gains, summarise
+from nerfuser_ns.bench.practitioner_cases import AUTO_COLUMN, BLEND_COLUMNS, blend_gains, summarise
 from nerfuser_ns.files import write_text_atomic
 
 
@@ -101,9 +101,13 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
         if any(r["registration"].get(key) for r in records):
             lines += ["", summarise(records, key).line(f"Against the {truth} truth (the cases scored with it), ")]
     gains = {layout: blend_gains(cases) for layout, cases in by_layout.items()}
-    columns = [(k, name) for k, name in BLEND_COLUMNS if any(k in g for g in gains.values())]
+    columns = [(k, name) for k, name in [*BLEND_COLUMNS, AUTO_COLUMN] if any(k in g for g in gains.values())]
     lines += ["", "Blend methods per layout (PSNR minus IDW-Sample's, dB: median (lowest to highest) over the cases "
-              "registered without a failure, and the cases where the method scored highest):", "",
+              "registered without a failure, and the cases where the method scored highest). *Auto* is the method "
+              "`auto` (ours, the default) renders each case with: coverage where a capture's cameras do not look at "
+              "a centre, IDW-Sample where every one does; as each report recorded it from the registration file, "
+              "or, for the cases scored before `auto` existed, what their layout's cameras give (IDW-Sample around "
+              "objects, coverage on every other layout).", "",
               "| layout | " + " | ".join(name for _, name in columns) + " |", "|" + " --- |" * (len(columns) + 1)]
     for layout, g in gains.items():
         if g:
@@ -111,9 +115,10 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
                      for k, _ in columns]  # fmt: skip
             lines.append(f"| {layout} | " + " | ".join(cells) + " |")
     blends = summary.idw_sample_over_nearest
-    covered = summary.coverage_over_nearest
+    covered, auto = summary.coverage_over_nearest, summary.auto_over_nearest
     lines += ["", f"IDW-Sample >= Nearest on {sum(blends)} of {len(blends)} cases with a blend; Coverage (ours) >= "
-              f"Nearest on {sum(covered)} of the {len(covered)} that scored it.", "",
+              f"Nearest on {sum(covered)} of the {len(covered)} that scored it; Auto (ours, the default) >= Nearest "
+              f"on {sum(auto)} of {len(auto)}.", "",
               "Targets (defaults only): " + "; ".join(f"{t}: {'met' if ok else 'NOT met'}"
                                                      for t, ok in summary.targets()) + ".",
               "", summary.line(), ""]  # fmt: skip

@@ -27,6 +27,7 @@ from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.coverage import CameraIndex
 from nerfuser_ns.model import NerfuserModel, NerfuserModelConfig, fuse_models, map_rays
 from nerfuser_ns.registration import NerfEntry, write_minimal_registration
+from nerfuser_ns.sampling import look_at
 from nerfuser_ns.spec import write_fusion_spec
 
 pytestmark = pytest.mark.slow
@@ -246,6 +247,30 @@ def test_coverage_without_cameras_is_idw_sample_with_one_warning(pair):
     want = render(two, C2W, OUTPUTS + ("share_0",))
     for key in want:
         assert torch.equal(got[key], want[key]), key
+
+
+def test_auto_renders_idw_sample_for_cameras_around_the_scene_and_coverage_for_cameras_along_a_path(pair):
+    fused, _ = pair
+    (a, b), T_b = fused.nerfs.models, fused.nerf_to_common[1].double().numpy()
+    to_b = sim3.invert_sim3(T_b)
+    az = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    around = look_at(np.stack([0.6 * np.cos(az), 0.6 * np.sin(az), np.full(12, 0.3)], axis=-1), np.zeros(3))
+    walk = np.stack([np.linspace(-1.0, 1.0, 12), np.full(12, -0.6), np.full(12, 0.1)], axis=-1)
+    along = look_at(walk, walk + np.array([0.0, 1.0, 0.0]))  # a walk past a facade
+    for cameras, want in ((around, "idw-sample"), (along, "coverage")):
+        nerfs = [("a", a, np.eye(4), _cameras(*cameras)), ("b", b, T_b, _cameras(*sim3.transform_poses(to_b, cameras)))]
+        auto = fuse_models(nerfs, tau=None)  # the default
+        assert (auto.blend_method, auto.active_method) == ("auto", want)
+        assert want in auto.auto_reason and want in auto.viewer_scene.controls["blend_method"].hint
+        explicit = fuse_models(nerfs, tau=None, blend_method=want)
+        got, expected = render(auto, C2W, OUTPUTS + ("share_0",)), render(explicit, C2W, OUTPUTS + ("share_0",))
+        for key in expected:
+            assert torch.equal(got[key], expected[key]), (want, key)
+        auto.blend_method = "nearest"  # a method set live is rendered as it is; auto again resolves as before
+        assert auto.active_method == "nearest"
+        auto.blend_method = "auto"
+        assert auto.active_method == want
+    assert "auto" in auto.viewer_scene.controls["blend_method"].options
 
 
 def test_colour_maps_are_applied_to_each_nerfs_colours_and_can_be_switched_off(trained, monkeypatch):

@@ -284,7 +284,7 @@ class FrameLog:
                     "state": machine.state,
                     "image": log.last_image,
                     "output": machine.viewer.control_panel.output_render,
-                    "method": model.blend_method,
+                    "method": model.active_method,  # auto resolved
                     "reference": model.reference_nerf,
                 }
             )
@@ -416,14 +416,16 @@ def test_page_shows_the_blended_render_low_resolution_first(session, tmp_path):
 def test_controls_change_the_next_frame(session):
     running, browser, log = session["running"], session["browser"], session["log"]
     model, controls = running.model, running.scene_control.controls
-    before = wait_for(lambda: log.after(0, state="high", method="idw-sample", output="rgb"), 120, "a first frame")
+    assert model.blend_method == "auto"  # the default
+    first = model.active_method
+    before = wait_for(lambda: log.after(0, state="high", method=first, output="rgb"), 120, "a first frame")
     changed = time.monotonic()
     assert controls["reference_nerf"].options == [f"{i}: {n}" for i, n in enumerate(model.nerf_names)]
     controls["reference_nerf"].value = controls["reference_nerf"].options[1]
     controls["blend_method"].value = "nerf"  # NeRF b alone
     after = wait_for(lambda: log.after(changed, state="high", method="nerf", reference=1), 120, "a new frame")
     diff = np.abs(after["image"].astype(np.float32) - before["image"].astype(np.float32)).mean() / 255
-    print(f"\nidw-sample -> nerf (b): mean |difference| {diff:.3f}")
+    print(f"\n{before['method']} -> nerf (b): mean |difference| {diff:.3f}")
     assert diff > 0.03
     wait_for(lambda: shows(browser, after["image"]) > 0.9, 30, "the page to show the new frame")
     assert shows(browser, after["image"]) > shows(browser, before["image"]) + 0.1

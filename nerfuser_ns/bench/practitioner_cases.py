@@ -17,15 +17,20 @@ from nerfstudio.process_data.process_data_utils import list_images
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
+from nerfuser_ns.blend_choice import ALONG_A_PATH, AROUND_OBJECTS, choose_blend_method
 from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset_intrinsics
+from nerfuser_ns.coverage import CameraIndex
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.match_check import check_dataset_matches
 from nerfuser_ns.registration.record import write_registration
+from nerfuser_ns.spec import read_registered_nerfs
 
 BLEND_COLUMNS = [("nerf", "NeRF (ref.)"), ("nearest", "Nearest"), ("idw_2d", "IDW-2D"), ("idw_3d", "IDW-3D"),
                  ("idw_sample", "IDW-Sample"), ("coverage", "Coverage (ours)"),
                  ("coverage_3d", "Coverage-3D (ours)")]  # fmt: skip
 """``ns-eval``'s metric suffix and the report's column name of each blend method."""
+AUTO_COLUMN = ("auto", "Auto (ours, the default)")
+"""The column of ``auto``: the score of the method it renders a case with (:func:`with_auto`)."""
 
 
 def case_layout(
@@ -258,6 +263,8 @@ class Summary:
     """Per case with a blend: IDW-Sample >= Nearest."""
     coverage_over_nearest: list[bool] = field(default_factory=list)
     """Per case with a ``coverage`` (ours) score: coverage >= Nearest."""
+    auto_over_nearest: list[bool] = field(default_factory=list)
+    """Per case with a score of the method ``auto`` (ours, the default) renders it with: that score >= Nearest."""
 
     def line(self, prefix: str = "") -> str:
         return (f"{prefix}{self.cases} case(s), {self.nerfs} registered NeRF(s): median r_err "
@@ -288,9 +295,42 @@ def summarise(records: list[dict], errors: str = "errors") -> Summary:
     ok = [e for e in scored if e is not None]
     median = {k: float(np.median([e[k] for e in ok])) if ok else float("nan") for k in ("r_err_deg", "t_err", "s_err")}
     success = sum(not e["failure"] for e in ok) / max(len(scored), 1)
-    blends = [r["blend_psnr"] for r in rows if r.get("blend_psnr")]
+    blends = [with_auto(r)["blend_psnr"] for r in rows if r.get("blend_psnr")]
     return Summary(len(rows), len(scored), success, median, [b["idw_sample"] >= b["nearest"] for b in blends],
-                   [b["coverage"] >= b["nearest"] for b in blends if b.get("coverage") is not None])  # fmt: skip
+                   [b["coverage"] >= b["nearest"] for b in blends if b.get("coverage") is not None],
+                   [b["auto"] >= b["nearest"] for b in blends if b.get("auto") is not None])  # fmt: skip
+
+
+def auto_blend_key(record: dict) -> str:
+    """The blend column (:data:`BLEND_COLUMNS`) of the method ``auto`` renders a case with: as the report recorded it
+    (``auto_blend``, from the registration file's training cameras through :mod:`nerfuser_ns.blend_choice`, what the
+    fused model does), or, for a record scored before ``auto`` existed, what its layout's cameras give: IDW-Sample
+    around objects, coverage on every other layout (``tests/test_blend_choice.py`` checks each layout)."""
+    method = (record.get("auto_blend") or {}).get("method")
+    if method is None:
+        method = AROUND_OBJECTS if record["spec"].startswith("object-centric:") else ALONG_A_PATH
+    return method.replace("-", "_")
+
+
+def with_auto(record: dict) -> dict:
+    """A copy of a case record whose blend tables also hold ``auto``: the score of the method it renders the case
+    with (None where the case has no score of that method)."""
+    out = dict(record)
+    key = auto_blend_key(record)
+    for table in ("blend_psnr", "blend_ssim"):
+        if record.get(table):
+            out[table] = {**record[table], "auto": record[table].get(key)}
+    return out
+
+
+def auto_blend_choice(registration: Path) -> dict[str, str]:
+    """``{"method", "reason"}``: what ``auto`` renders the NeRFs of a registration file with (their recorded
+    training cameras; the verdict does not depend on the frame, so each NeRF's own will do)."""
+    nerfs = read_registered_nerfs(registration, check_runs=False)
+    cameras = [None if (c := n.training_cameras) is None else CameraIndex.from_cameras(c.c2w, c.intrinsics)
+               for n in nerfs]  # fmt: skip
+    method, reason = choose_blend_method(cameras, [n.name for n in nerfs])
+    return {"method": method, "reason": reason}
 
 
 @dataclass
@@ -312,13 +352,14 @@ class BlendGain:
 def blend_gains(records: list[dict], baseline: str = "idw_sample") -> dict[str, BlendGain]:
     """Per blend method of :data:`BLEND_COLUMNS` (but ``nerf``): its PSNR minus ``baseline``'s over the case records
     with a blend and a registration without a failure (a misregistered blend says nothing of the method)."""
-    rows = [r["blend_psnr"] for r in records if r.get("blend_psnr") and r["registration"].get("errors")
+    rows = [with_auto(r)["blend_psnr"] for r in records if r.get("blend_psnr") and r["registration"].get("errors")
             and not any(e["failure"] for e in r["registration"]["errors"])]  # fmt: skip
     methods = [k for k, _ in BLEND_COLUMNS if k != "nerf"]
     # each case's highest score, once (None: the case scored none of them, so no method below pairs with it)
     tops = [max((b[k] for k in methods if b.get(k) is not None), default=None) for b in rows]
     out = {}
-    for m in methods:
+    # ``auto`` is one of the methods under another name: scored, never a rival
+    for m in [*methods, "auto"]:
         scored = [(b, top) for b, top in zip(rows, tops, strict=True) if b.get(m) is not None
                   and b.get(baseline) is not None]  # fmt: skip
         if not scored:

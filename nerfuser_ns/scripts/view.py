@@ -32,8 +32,8 @@ from rich.text import Text
 
 from nerfuser_ns import runs
 from nerfuser_ns.adapters import UnsupportedRunError
+from nerfuser_ns.blend_choice import BlendChoice
 from nerfuser_ns.blend_settings import BlendSettings
-from nerfuser_ns.blending import BlendMethod
 from nerfuser_ns.method_configs.nerfuser import nerfuser_config
 from nerfuser_ns.model import NerfuserModel, NerfuserModelConfig
 from nerfuser_ns.runs import RunLoadError, check_device, default_device
@@ -59,8 +59,9 @@ class ViewCommand:
     """Torch device the NeRFs render on (default: cuda when torch sees a GPU, else cpu)."""
     max_res: int | None = None
     """The panel's initial "Max res" (default: 256 on the CPU, nerfstudio's 512 otherwise)."""
-    blend_method: BlendMethod | None = None
-    """Initial blend method (default: the run's, or idw-sample); the panel changes it live."""
+    blend_method: BlendChoice | None = None
+    """Initial blend method (default: the run's, or auto: idw-sample around objects, coverage along a path); the
+    panel changes it live."""
     gamma: float | None = None
     """Initial IDW blending rate (default: the run's, or 5)."""
     tau: float | None = None

@@ -8,7 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from nerfuser_ns.bench.practitioner_cases import blend_gains, summarise
+from nerfuser_ns.bench.practitioner_cases import auto_blend_choice, blend_gains, summarise, with_auto
+from nerfuser_ns.registration import NerfEntry, write_minimal_registration
+from nerfuser_ns.registration.record import TrainingCameras
+from nerfuser_ns.sampling import look_at
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +82,11 @@ def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_
     assert "| street | -1.00 (-1.00 to -1.00); best 0/1 | best 1/1 |" in text
     assert "| room |" not in text  # its one case failed: no blend method is judged on it
     assert ("IDW-Sample >= Nearest on 3 of 3 cases with a blend; Coverage (ours) >= Nearest on 1 of the 2 that "
-            "scored it." in text)  # fmt: skip
+            "scored it; Auto (ours, the default) >= Nearest on 1 of 2." in text)  # fmt: skip
+    assert "| layout | Nearest | IDW-Sample | Coverage (ours) | Auto (ours, the default) |" in text
+    # around objects auto is IDW-Sample (+0.00 over it); along the street coverage (19.5 against IDW-Sample's 21)
+    assert "| object-centric | -1.00 (-1.00 to -1.00); best 0/1 | best 1/1 | -0.50 (-0.50 to -0.50); best 0/1 | " \
+           "+0.00 (+0.00 to +0.00); best 1/1 |" in text
     assert text.rstrip().endswith("3 case(s), 3 registered NeRF(s): median r_err 0.0800 deg, t_err 0.00800, "
                                   "s_err 0.00080; success rate 0.67.")  # fmt: skip
 
@@ -100,7 +107,9 @@ def test_blend_gains_against_idw_sample_leave_out_misregistered_and_unscored_cas
     records[1]["blend_psnr"].update(idw_2d=20.0, coverage=20.5, coverage_3d=22.0)
     records[2]["blend_psnr"].update(idw_2d=30.0, coverage=30.0)  # a failed registration: left out
     gains = blend_gains(records)
-    assert set(gains) == {"nearest", "idw_2d", "idw_sample", "coverage", "coverage_3d"}
+    assert set(gains) == {"nearest", "idw_2d", "idw_sample", "coverage", "coverage_3d", "auto"}
+    # auto on a street is coverage, under another name: the same gains, and it is no rival that takes a best
+    assert (gains["auto"].median, gains["auto"].best) == (gains["coverage"].median, gains["coverage"].best)
     cov = gains["coverage"]
     assert (cov.cases, cov.median, cov.low, cov.high, cov.best) == (2, pytest.approx(0.25), pytest.approx(-0.5),
                                                                    pytest.approx(1.0), 1)  # fmt: skip
@@ -108,3 +117,33 @@ def test_blend_gains_against_idw_sample_leave_out_misregistered_and_unscored_cas
     assert gains["idw_sample"].median == 0.0 and gains["idw_sample"].best == 0
     assert gains["nearest"].cell() == "-1.00 (-1.00 to -1.00); best 0/2"
     assert blend_gains([_record("room-1", 170.0, failure=True)]) == {}
+
+
+def test_auto_takes_the_recorded_choice_or_the_layouts_and_reads_a_registration_file(tmp_path):
+    street, obj = _record("street-1", 0.1), _record("object-centric-1", 0.1)
+    for r in (street, obj):
+        r["blend_psnr"].update(coverage=22.5)
+    assert with_auto(street)["blend_psnr"]["auto"] == 22.5 and with_auto(obj)["blend_psnr"]["auto"] == 21.0
+    assert "auto" not in street["blend_psnr"]  # a copy
+    street["auto_blend"] = {"method": "idw-sample", "reason": "..."}  # what the report recorded wins
+    assert with_auto(street)["blend_psnr"]["auto"] == 21.0
+    assert with_auto(_record("street-2", None) | {"blend_psnr": None})["blend_psnr"] is None
+
+    az = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    ring = look_at(np.stack([2 * np.cos(az), 2 * np.sin(az), np.ones(16)], axis=-1), np.zeros(3))
+    walk = np.stack([np.linspace(0, 20, 16), np.zeros(16), np.ones(16)], axis=-1)
+    facade = look_at(walk, walk + np.stack([0.3 * np.sin(np.arange(16)), np.full(16, 5.0), np.zeros(16)], axis=-1))
+    beside = ring.copy()
+    beside[:, 0, 3] += 3.0  # the same ring around an object 3 m away
+    intrinsics = np.tile([100.0, 100.0, 80.0, 60.0, 160.0, 120.0], (16, 1))
+
+    def registration(*poses):
+        nerfs = [NerfEntry(f"capture_{i}", tmp_path / f"run{i}/config.yml", np.eye(4), TrainingCameras(c, intrinsics))
+                 for i, c in enumerate(poses)]  # fmt: skip
+        return write_minimal_registration(nerfs, tmp_path / f"registration_{len(list(tmp_path.iterdir()))}.json")
+
+    around = auto_blend_choice(registration(ring, beside))
+    assert around["method"] == "idw-sample" and "capture_1 0" in around["reason"]
+    along = auto_blend_choice(registration(ring, facade))
+    assert along["method"] == "coverage" and "not every NeRF's cameras look at a centre" in along["reason"]
+
