@@ -99,7 +99,8 @@ def choose_blend_method(cameras: Sequence[CameraIndex | None], names: Sequence[s
     names = list(names) if names is not None else [f"NeRF {i}" for i in range(len(cameras))]
     missing = [n for n, c in zip(names, cameras, strict=True) if c is None]
     if missing:
-        return AROUND_OBJECTS, f"{AROUND_OBJECTS}: no training cameras recorded for {', '.join(missing)}"
+        return AROUND_OBJECTS, (f"{AROUND_OBJECTS}: the training cameras of {', '.join(missing)} are not in the "
+                                "registration file")  # fmt: skip
     verdicts = [looks_at_centre(c) for c in cameras]  # type: ignore[arg-type]
     found = ", ".join(f"{n} " + ("no focus" if m is None else f"{m:.0f} deg / {r:.2f}")
                       for n, (_, m, r) in zip(names, verdicts, strict=True))  # fmt: skip

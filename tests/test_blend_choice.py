@@ -88,7 +88,7 @@ def test_auto_picks_the_papers_method_only_when_every_nerf_circles_an_object():
     assert method == "coverage" and "not every NeRF" in why
     # A NeRF without cameras: coverage could not score it, so the paper's method, and the line names it.
     method, why = choose_blend_method([_index(street()), None], ["a", "b"])
-    assert method == "idw-sample" and "no training cameras recorded for b" in why
+    assert method == "idw-sample" and "the training cameras of b are not in the registration file" in why
 
 
 @pytest.mark.parametrize("layout", scenes.LAYOUT_NAMES)

@@ -528,7 +528,7 @@ def test_ns_train_writes_a_normal_run(fused_run):
     assert len(ckpts) == 1 and ckpts[0].stat().st_size < 100_000  # no sub-model weights inside
     assert (run_dir / "dataparser_transforms.json").is_file()
     config = yaml.load(fused_run.read_text(), Loader=yaml.Loader)
-    assert config.method_name == "nerfuser" and config.pipeline.model.blend_method == "idw-sample"
+    assert config.method_name == "nerfuser" and config.pipeline.model.blend_method == "auto"
     loaded = runs.load_run(fused_run)  # the fused run loads like any other
     assert isinstance(loaded.model, NerfuserModel) and loaded.model.num_nerfs == 2
 
