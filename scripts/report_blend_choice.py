@@ -21,11 +21,11 @@ from pathlib import Path
 
 import tyro
 
+from nerfuser_ns.bench.practitioner_cases import registered_cameras
 from nerfuser_ns.bench.scenes import benchmark_params, make_layout
 from nerfuser_ns.blend_choice import CENTRE_MISS_DEG, CENTRE_SPREAD, choose_blend_method, looks_at_centre
 from nerfuser_ns.coverage import CameraIndex
 from nerfuser_ns.files import write_text_atomic
-from nerfuser_ns.spec import read_registered_nerfs
 
 
 @dataclass
@@ -65,12 +65,10 @@ def main(cfg: ReportBlendChoice) -> None:
             rows.append(_row(f"{layout}-{seed}", "true cameras", [c.name for c in built.captures], cameras))
     for path in cfg.registrations:
         try:
-            nerfs = read_registered_nerfs(path, check_runs=False)
+            names, cameras = registered_cameras(path)
         except (OSError, ValueError) as e:
             raise SystemExit(f"{path}: not a readable registration file ({e})") from None
-        cameras = [None if (c := n.training_cameras) is None else CameraIndex.from_cameras(c.c2w, c.intrinsics)
-                   for n in nerfs]  # fmt: skip
-        rows.append(_row(path.parent.name, "registration file", [n.name.split("/")[0] for n in nerfs], cameras))
+        rows.append(_row(path.parent.name, "registration file", [n.split("/")[0] for n in names], cameras))
     lines = ["# What the blend method `auto` chooses", "",
              f"Made by `python scripts/report_blend_choice.py {' '.join(sys.argv[1:])}`. Per NeRF: the median angle "
              "by which its training cameras' optical axes miss their focus of attention, and their spread R around "

@@ -323,13 +323,20 @@ def with_auto(record: dict) -> dict:
     return out
 
 
-def auto_blend_choice(registration: Path) -> dict[str, str]:
-    """``{"method", "reason"}``: what ``auto`` renders the NeRFs of a registration file with (their recorded
-    training cameras; the verdict does not depend on the frame, so each NeRF's own will do)."""
+def registered_cameras(registration: Path) -> tuple[list[str], list[CameraIndex | None]]:
+    """The NeRFs of a registration file by name, and the training cameras it recorded for each (in the NeRF's own
+    frame; None: not recorded)."""
     nerfs = read_registered_nerfs(registration, check_runs=False)
     cameras = [None if (c := n.training_cameras) is None else CameraIndex.from_cameras(c.c2w, c.intrinsics)
                for n in nerfs]  # fmt: skip
-    method, reason = choose_blend_method(cameras, [n.name for n in nerfs])
+    return [n.name for n in nerfs], cameras
+
+
+def auto_blend_choice(registration: Path) -> dict[str, str]:
+    """``{"method", "reason"}``: what ``auto`` renders the NeRFs of a registration file with (their recorded
+    training cameras; the verdict does not depend on the frame, so each NeRF's own will do)."""
+    names, cameras = registered_cameras(registration)
+    method, reason = choose_blend_method(cameras, names)
     return {"method": method, "reason": reason}
 
 
