@@ -32,16 +32,16 @@ from torch import Tensor
 
 from nerfuser_ns.coverage import CameraIndex
 
-CENTRE_MISS_DEG = 20.0
-"""Largest median miss angle (degrees) of cameras that look at one centre. Fixed on validation seeds (900-902) of the
-generated layouts before any reported case was scored with ``auto``: rings around an object miss their focus by a
-median 2.3-3.1 deg, cameras of streets, drives, rooms and row houses by 68-98 deg."""
-
 BlendChoice = Literal["auto", "nerf", "nearest", "idw-2d", "idw-3d", "idw-sample", "coverage", "coverage-3d"]
 """What a user may set: ``auto`` (ours, the default) or one of the blend methods
 (:data:`nerfuser_ns.blending.BlendMethod`)."""
 BLEND_CHOICES: tuple[str, ...] = get_args(BlendChoice)
 AUTO = "auto"
+
+CENTRE_MISS_DEG = 20.0
+"""Largest median miss angle (degrees) of cameras that look at one centre. Fixed on validation seeds (900-902) of the
+generated layouts before any reported case was scored with ``auto``: rings around an object miss their focus by a
+median 2.3-3.1 deg, cameras of streets, drives, rooms and row houses by 68-98 deg."""
 
 CENTRE_SPREAD = 0.9
 """Largest ``R`` (the mean unit vector from the focus to the cameras) of cameras around a centre: a quarter turn of a
