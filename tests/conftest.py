@@ -43,7 +43,7 @@ def pytest_configure(config: pytest.Config) -> None:
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if "PYTEST_XDIST_WORKER" not in os.environ or workers < 2 or any(name in os.environ for name in THREAD_VARIABLES):
         return  # one process, or the caller chose
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    threads = max(1, torch.get_num_threads() // workers)  # the pool each process would have made, shared out
     for name in THREAD_VARIABLES:
         os.environ.setdefault(name, str(threads))
     torch.set_num_threads(threads)
