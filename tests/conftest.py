@@ -1,5 +1,5 @@
-"""Fixtures shared across the suite (the tiny generated scene that the NeRF-training tests start from) and the order
-in which the test files are handed to the two test processes."""
+"""Fixtures shared across the suite (the tiny generated scene that the NeRF-training tests start from), the order
+in which the test files are handed to the two test processes, and each process's share of the cores."""
 
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ def pytest_configure(config: pytest.Config) -> None:
         return  # one process, or the caller chose
     threads = max(1, torch.get_num_threads() // workers)  # the pool each process would have made, shared out
     for name in THREAD_VARIABLES:
-        os.environ.setdefault(name, str(threads))
+        os.environ[name] = str(threads)  # for the programs the tests start
     torch.set_num_threads(threads)
     threadpool_limits(threads)
 
