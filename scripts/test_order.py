@@ -22,6 +22,8 @@ from pathlib import Path
 import tyro
 
 DURATION = re.compile(r"^([\d.]+)s (?:setup|call|teardown)\s+(tests/\S+?\.py)::(\S+)", re.M)
+TRUNCATED = re.compile(r"slowest \d+ durations")
+"""pytest's header when it lists only the slowest tests (``--durations=N``, as ``make test`` runs it)."""
 
 
 @dataclass
@@ -49,14 +51,15 @@ def file_times(log: str) -> dict[str, list[float]]:
 
 def replay(order: list[str], files: dict[str, list[float]], workers: int) -> list[float]:
     """When each process finishes: xdist's loadfile hand-out (one file each, then the next whenever a process has at
-    most two tests pending), each process running its tests one after another."""
-    queue = list(order)
+    most two tests pending), each process running its tests one after another. Files without times (new since the
+    log) are left out."""
+    queue = [path for path in order if files.get(path)]
     pending: list[list[float]] = [[] for _ in range(workers)]
     clock = [0.0] * workers
 
     def hand_out(k: int) -> None:
         if queue and len(pending[k]) <= 2:
-            pending[k] += files.get(queue.pop(0), [])
+            pending[k] += files[queue.pop(0)]
 
     for k in range(workers):
         hand_out(k)
@@ -89,9 +92,9 @@ def longest_first(conftest: Path) -> list[str]:
 
 
 def main(cmd: OrderTests) -> None:
-    files = file_times(cmd.log.read_text())
-    if not files:
-        raise SystemExit(f"test_order: no per-test durations in {cmd.log}; run scripts/test.sh with --durations=0")
+    log = cmd.log.read_text()
+    if TRUNCATED.search(log) or not (files := file_times(log)):
+        raise SystemExit(f"test_order: {cmd.log} lacks every test's duration; run scripts/test.sh with --durations=0")
     total = {path: sum(times) for path, times in files.items()}
     collected = collection_order(Path("tests"))
     longest = sorted(collected, key=lambda p: -total.get(p, 0.0))

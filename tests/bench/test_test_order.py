@@ -27,6 +27,7 @@ def order(load_script):
 def test_file_times_sum_each_tests_phases_per_file(order):
     assert order.file_times(LOG) == {"tests/registration/test_a.py": [13.0, 3.0], "tests/test_b.py": [2.25]}
     assert order.file_times("no durations here") == {}
+    assert order.TRUNCATED.search("=== slowest 15 durations ===") and not order.TRUNCATED.search(LOG)
 
 
 def test_replay_follows_xdists_hand_out_of_whole_files(order):
@@ -37,6 +38,8 @@ def test_replay_follows_xdists_hand_out_of_whole_files(order):
     assert sum(clock) == pytest.approx(sum(map(sum, files.values())))  # every test runs once
     assert max(clock) >= 10.0
     assert order.replay(["a"], files, 2) == [10.0, 0.0]
+    # a file the log does not know (new since) is left out, and never stalls the process that drew it
+    assert order.replay(["a", "new", "b", "c"], files, 2) == order.replay(["a", "b", "c"], files, 2)
 
 
 def test_every_file_conftest_starts_first_exists(order):
