@@ -1,4 +1,4 @@
-"""Which test files to start first: per-file times from a ``make test`` log, and the hand-out of files replayed.
+"""Which test files to start first: per-file times from a test log with every duration, and the hand-out replayed.
 
 ``scripts/test.sh`` runs two pytest-xdist processes with ``--dist loadfile --no-loadscope-reorder``: each process gets
 the next file in collection order when it has at most two tests of its own left. ``tests/conftest.py`` moves the
