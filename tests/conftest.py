@@ -30,7 +30,7 @@ LONGEST_FIRST = (
     "test_plugin.py",
     "registration/test_pipeline.py",
 )
-"""The ten longest test files (35-155 s each in `make test --durations=0` on two cores), longest first.
+"""The ten longest test files (35-155 s each in `scripts/test.sh --durations=0` on two cores), longest first.
 scripts/test.sh hands whole files to two processes in collection order (``--dist loadfile --no-loadscope-reorder``);
 started last, one of these would keep one process busy after the other ran out of work. Replayed from those
 durations, this order ends 23 s sooner than the earlier list of eight (574 s against 597 s for the slower process)."""
