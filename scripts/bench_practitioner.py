@@ -127,7 +127,8 @@ class BenchPractitioner:
     height: int = 240
     """Capture image height."""
     num_captures: int = 2
-    """Captures of street and drive scenes (object-centric always has 2)."""
+    """Captures of street and drive scenes (object-centric always has 2, row houses 3). Such case folders get the
+    suffix ``-<n>captures`` when it is not 2."""
     max_num_iterations: int = 2000
     """nerfacto steps per capture."""
     train_preset: Literal["cpu", "stock"] = "cpu"
@@ -204,9 +205,12 @@ def _layout(case: str, cfg: BenchPractitioner):
 
 
 def case_folder(case: str, cfg: BenchPractitioner) -> str:
-    """A case's folder name: ``layout-seed``, with the appearance differences it was rendered with and the camera
-    optimiser's setting when it is not nerfacto's default."""
+    """A case's folder name: ``layout-seed``, with the number of captures of a street or drive when it is not 2, the
+    appearance differences it was rendered with and the camera optimiser's setting when it is not nerfacto's
+    default."""
     name = case.replace(":", "-")
+    if case.rsplit(":", 1)[0] in ("street", "drive") and cfg.num_captures != 2:
+        name += f"-{cfg.num_captures}captures"
     if cfg.appearance_jitter > 0:
         name += f"-{'bracket' if cfg.appearance_bracket else 'jitter'}{cfg.appearance_jitter:g}"
     name += "-sequential" if cfg.matching_method == "sequential" else ""
@@ -238,6 +242,8 @@ def case_options(cfg: BenchPractitioner) -> list[str]:
     """The command-line options that shape a case beyond ``--cases`` (its images and its training), as given to this
     script: a report's command must carry them to make the same case again."""
     opts = []
+    if cfg.num_captures != 2:
+        opts += ["--num-captures", str(cfg.num_captures)]
     if cfg.appearance_jitter > 0:
         opts += ["--appearance-jitter", f"{cfg.appearance_jitter:g}"]
         opts += ["--appearance-bracket"] if cfg.appearance_bracket else []

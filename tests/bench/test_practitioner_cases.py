@@ -181,6 +181,11 @@ def test_a_case_posed_by_another_matching_shares_the_images_alone(load_script, t
     assert "room-6" in bench.image_siblings("room:6", one_focal)
     assert "room-6" not in bench.training_siblings("room:6", one_focal)
     assert bench.case_options(one_focal) == ["--camera-type", "simple_pinhole"]
+    three = bench.replace(cfg, num_captures=3)  # other images: never a sibling of the two-capture case
+    assert [bench.case_folder(c, three) for c in ("street:19", "drive:21", "room:6")] == [
+        "street-19-3captures", "drive-21-3captures", "room-6"]
+    assert "street-19" not in bench.image_siblings("street:19", three) + bench.training_siblings("street:19", three)
+    assert bench.case_options(three) == ["--num-captures", "3"]
     caps = ["capture_a", "capture_b"]
     _captured(tmp_path / "room-6", caps, {"images capture_a": 80.0, "colmap capture_a": 120.0})
     case = tmp_path / "room-6-sequential"
