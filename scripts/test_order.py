@@ -21,6 +21,8 @@ from pathlib import Path
 
 import tyro
 
+ROOT = Path(__file__).resolve().parents[1]
+"""The repository: its ``tests`` folder is read wherever the script is run from."""
 DURATION = re.compile(r"^([\d.]+)s (?:setup|call|teardown)\s+(tests/\S+?\.py)::(\S+)", re.M)
 TRUNCATED = re.compile(r"slowest \d+ durations")
 """pytest's header when it lists only the slowest tests (``--durations=N``, as ``make test`` runs it)."""
@@ -73,13 +75,14 @@ def replay(order: list[str], files: dict[str, list[float]], workers: int) -> lis
 
 
 def collection_order(root: Path) -> list[str]:
-    """Test files as pytest collects them: each folder's entries sorted by name, folders and files alike."""
+    """Test files as pytest collects them: each folder's entries sorted by name, folders and files alike; paths
+    relative to ``root``'s parent (``tests/...py``, as pytest's log names them)."""
     found: list[str] = []
     for entry in sorted(root.iterdir(), key=lambda p: p.name):
         if entry.is_dir() and not entry.name.startswith((".", "_")):
-            found += collection_order(entry)
+            found += [f"{root.name}/{p}" for p in collection_order(entry)]
         elif entry.name.startswith("test_") and entry.suffix == ".py":
-            found.append(entry.as_posix())
+            found.append(f"{root.name}/{entry.name}")
     return found
 
 
@@ -96,7 +99,7 @@ def main(cmd: OrderTests) -> None:
     if TRUNCATED.search(log) or not (files := file_times(log)):
         raise SystemExit(f"test_order: {cmd.log} lacks every test's duration; run scripts/test.sh with --durations=0")
     total = {path: sum(times) for path, times in files.items()}
-    collected = collection_order(Path("tests"))
+    collected = collection_order(ROOT / "tests")
     longest = sorted(collected, key=lambda p: -total.get(p, 0.0))
     print(f"{len(files)} files, {sum(total.values()):.0f} s of tests in all")
     for path in longest[: cmd.top]:
@@ -106,7 +109,7 @@ def main(cmd: OrderTests) -> None:
         return paths + [p for p in collected if p not in paths]
 
     orders = {
-        "current (tests/conftest.py)": first([f"tests/{p}" for p in longest_first(Path("tests/conftest.py"))]),
+        "current (tests/conftest.py)": first([f"tests/{p}" for p in longest_first(ROOT / "tests" / "conftest.py")]),
         f"the {cmd.top} longest first": first(longest[: cmd.top]),
         "every file longest first": longest,
     }

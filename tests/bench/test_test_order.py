@@ -47,3 +47,12 @@ def test_every_file_conftest_starts_first_exists(order):
     assert len(listed) == len(set(listed)) >= 1
     missing = [p for p in listed if not (TESTS / p).is_file()]
     assert not missing, f"tests/conftest.py LONGEST_FIRST names files that do not exist: {missing}"
+
+
+def test_collection_order_names_files_as_pytests_log_does(order, tmp_path, monkeypatch):
+    (tmp_path / "tests" / "sub").mkdir(parents=True)
+    for name in ("tests/test_b.py", "tests/sub/test_a.py", "tests/sub/helper.py", "tests/test_a.py"):
+        (tmp_path / name).write_text("")
+    monkeypatch.chdir(tmp_path / "tests" / "sub")  # the result does not depend on where the tool runs
+    assert order.collection_order(tmp_path / "tests") == ["tests/sub/test_a.py", "tests/test_a.py", "tests/test_b.py"]
+    assert order.ROOT == TESTS.parent and "tests/bench/test_test_order.py" in order.collection_order(TESTS)
