@@ -20,6 +20,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from nerfuser_ns.registration.config import RegistrationError
 
 RAY_MISSING = 'distributing the work with Ray needs Ray: pip install "nerfuser_ns[city]"'
+RAY_CPUS_PER_TASK = 1
+"""CPUs each Ray task asks for (and the threads its pycolmap calls use, unless a count is set)."""
 
 
 def timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
@@ -39,6 +41,10 @@ class Executor(Protocol):
     def map(self, fn: Callable[..., Any], args: Sequence[tuple], description: str = "task",
             uses_gpu: bool = False) -> list[Any]: ...  # fmt: skip
 
+    def task_threads(self, requested: int) -> int:
+        """The threads a task's pycolmap calls may use, given the count asked for (-1: all cores)."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -57,16 +63,21 @@ class SerialExecutor:
         self.task_seconds.setdefault(description, []).extend(round(t, 3) for _, t in out)
         return [r for r, _ in out]
 
+    @staticmethod
+    def task_threads(requested: int) -> int:
+        """As asked: one task at a time has the cores to itself."""
+        return requested
+
     def close(self) -> None:
         pass
 
 
 class RayExecutor:
-    """One Ray task per call, one CPU each, and ``gpus_per_task`` GPUs for tasks that render (``uses_gpu``): by
-    default one GPU when the cluster has any (Ray hides the GPUs from a task that asks for none, so a NeRF loaded on
-    ``cuda`` needs it), none otherwise. Connects to ``address`` (e.g. ``auto`` or ``ray://head:10001``), or starts Ray
-    on this machine when it is None; :meth:`close` stops only a Ray this executor started. Progress over the tasks of
-    each :meth:`map` on ``console``."""
+    """One Ray task per call, one CPU each (:data:`RAY_CPUS_PER_TASK`), and ``gpus_per_task`` GPUs for tasks that render
+    (``uses_gpu``): by default one GPU when the cluster has any (Ray hides the GPUs from a task that asks for none, so a
+    NeRF loaded on ``cuda`` needs it), none otherwise. Connects to ``address`` (e.g. ``auto`` or ``ray://head:10001``),
+    or starts Ray on this machine when it is None; :meth:`close` stops only a Ray this executor started. Progress over
+    the tasks of each :meth:`map` on ``console``."""
 
     name = "ray"
 
@@ -94,7 +105,7 @@ class RayExecutor:
 
     def map(self, fn: Callable[..., Any], args: Sequence[tuple], description: str = "task",
             uses_gpu: bool = False) -> list[Any]:  # fmt: skip
-        remote = self._ray.remote(num_cpus=1, num_gpus=self.gpus_per_task if uses_gpu else 0)(timed)
+        remote = self._ray.remote(num_cpus=RAY_CPUS_PER_TASK, num_gpus=self.gpus_per_task if uses_gpu else 0)(timed)
         stored: dict[int, Any] = {}
 
         def ref(x: Any) -> Any:
@@ -118,6 +129,12 @@ class RayExecutor:
                     progress.advance(bar)
         self.task_seconds.setdefault(description, []).extend(round(t, 3) for _, t in results)
         return [r for r, _ in results]
+
+    @staticmethod
+    def task_threads(requested: int) -> int:
+        """A task's CPUs when all cores are asked for: Ray runs as many tasks at once as a node has CPUs, so tasks
+        that each took every core would oversubscribe it."""
+        return requested if requested > 0 else RAY_CPUS_PER_TASK
 
     def close(self) -> None:
         if self._started and self._ray.is_initialized():

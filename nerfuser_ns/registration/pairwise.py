@@ -277,9 +277,9 @@ def render_and_lift(
     check_kept_views(views, min_views, config.sampling)
 
     t0 = time.perf_counter()
+    threads = executor.task_threads(config.sfm.num_threads)
     with console.status("known geometry: SIFT keypoints lifted to 3D with the rendered depth"):
-        feats = executor.map(lift_keypoints, [(vs, intr, kg, config.sfm.num_threads, config.sfm.verbose)
-                                              for vs in views], "lift")  # fmt: skip
+        feats = executor.map(lift_keypoints, [(vs, intr, kg, threads, config.sfm.verbose) for vs in views], "lift")
     for vs, f in zip(views, feats, strict=True):
         if len(f.view) < kg.min_inliers:
             raise RegistrationError(

@@ -17,7 +17,7 @@ from nerfuser_ns.bench import scenes
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.registration import pairwise, render_cache, retrieval
 from nerfuser_ns.registration import pose_graph as pg
-from nerfuser_ns.registration.distributed import SerialExecutor
+from nerfuser_ns.registration.distributed import RAY_CPUS_PER_TASK, RayExecutor, SerialExecutor
 from nerfuser_ns.scripts.register import print_summary
 
 
@@ -448,6 +448,13 @@ def test_serial_executor_keeps_order_and_times_each_task():
     assert ex.map(_power, [(3, 2), (2, 3), (5, 1)], "power") == [9, 8, 5]
     assert ex.map(_power, [(2, 2)], "power", uses_gpu=True) == [4]  # no GPU asked of this process
     assert len(ex.task_seconds["power"]) == 4 and all(t >= 0 for t in ex.task_seconds["power"])
+    assert ex.task_threads(-1) == -1 and ex.task_threads(3) == 3  # one task at a time: every core
+
+
+def test_ray_tasks_take_their_own_cpus_not_every_core():
+    """Ray runs a task per CPU at once: pycolmap's 'all cores' (-1) becomes the task's CPUs; a set count stays."""
+    assert RayExecutor.task_threads(-1) == RAY_CPUS_PER_TASK == 1
+    assert RayExecutor.task_threads(4) == 4
 
 
 def test_graph_rejects_negative_ray_gpus(street, tmp_path):
