@@ -184,7 +184,13 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         ]
         table.add_row(*row)
     console.print(table)
-    pairs = Table(title="NeRF pairs")
+    checked = [p["self_check"] is not None for p in record["pairs"]]
+    caption = None
+    if checked and not any(checked):
+        caption = "-: no pair cross-render checked (--self-check-views 0)"
+    elif not all(checked):  # the check follows the spanning tree of the largest overlaps
+        caption = "-: not cross-render checked; its NeRFs are linked, and checked, through the pairs that overlap most"
+    pairs = Table(title="NeRF pairs", caption=caption)
     for col in ("pair", "covisible 3D points", "cross-render NCC", "depth", "check"):
         pairs.add_column(col, justify="left" if col == "pair" else "right")
     for p in record["pairs"]:

@@ -36,6 +36,23 @@ def test_the_summary_tells_the_runs_apart_in_a_narrow_terminal():
     assert "part_a/nerfacto/2026-11-27_1" in text and "part_b/nerfacto/2026-11-27_1" in text
     assert f"frame of {A}" in text.replace("\n", "")  # the title keeps the reference's full path
     assert "-0.031" in text and "0.012" not in text  # the depth direction farther from 0, as the check judges it
+    assert "not cross-render checked" not in text
+
+
+def test_the_summary_says_why_a_pair_has_no_check():
+    C = B.replace("part_b", "part_c")
+    record = _record([A, B, C])
+    linked = record["pairs"][0]
+    record["pairs"] = [{**linked, "names": [A, B]}, {**linked, "names": [B, C]},
+                       {"names": [A, C], "covisible_points": 7, "self_check": None}]  # outside the spanning tree
+    console = Console(record=True, width=120)
+    print_summary(record, console)
+    assert "-: not cross-render checked; its NeRFs are linked, and checked, through" in console.export_text()
+    for p in record["pairs"]:
+        p["self_check"] = None
+    console = Console(record=True, width=120)
+    print_summary(record, console)
+    assert "no pair cross-render checked (--self-check-views 0)" in console.export_text()
 
 
 def test_the_camera_optimiser_tip_names_the_runs_trained_with_one():
