@@ -178,7 +178,9 @@ class BenchPractitioner:
     """Before training, run ``ns-nerfuser-check-capture --write-larger-side --write-images-to-repose`` on each
     capture's COLMAP dataset and follow its advice as a user would: a capture it finds folded trains on its larger
     side, one with a few misposed views is posed again without them, one whose camera drifted is posed again with one
-    focal length (:func:`stage_check`). Case folders get the suffix ``-checked``."""
+    focal length (:func:`stage_check`). A folded capture it finds no remedy for (no side free of the fold, too many
+    views to leave out) stops the case before training: the check then advises posing it again with another matcher,
+    which is a user's choice, not a rule. Case folders get the suffix ``-checked``."""
     share_captures: bool = True
     """Before the ``scene`` stage of a case folder with no images yet, copy the images, COLMAP datasets and test views
     of the same case trained the other way (the other ``--camera-optimizer`` folder), when that folder has them all:
@@ -366,6 +368,17 @@ def stage_check(layout, case_dir: Path, matching_method: str = "exhaustive", cam
         checks[cap.name]["reposed"] = {**_check_record(reposed.parent), "camera_type": camera,
                                        "without_views": without_views, "for_drift": drifted}  # fmt: skip
     write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
+
+
+def unremedied_captures(case_dir: Path) -> list[str]:
+    """The captures :func:`stage_check` found folded (by file order or by COLMAP's matches; after their re-posing where
+    there was one) with no larger side to train on: a run trained on them cannot be registered correctly."""
+    stuck = []
+    for name, found in json.loads((case_dir / "capture_check.json").read_text()).items():
+        found = found.get("reposed", found)
+        if (found["folded"] or found["matches"]["folded"]) and found["larger_side"] is None:
+            stuck.append(name)
+    return stuck
 
 
 def _check_captures(datasets: list[Path], log: Path, *options: str) -> None:
@@ -1205,6 +1218,11 @@ def main(cfg: BenchPractitioner) -> None:
                 stage_colmap(layout, case_dir, cfg.matching_method, cfg.camera_type)
             if cfg.check_captures and "train" in cfg.stages:
                 stage_check(layout, case_dir, cfg.matching_method, cfg.camera_type)
+                if stuck := unremedied_captures(case_dir):
+                    CONSOLE.print(f"[yellow]{case}: ns-nerfuser-check-capture found {', '.join(stuck)} folded with no "
+                                  "remedy it can apply (no side free of the fold, too many views to leave out; see "
+                                  f"{case_dir / 'check_capture.log'}); the guide's path stops before training here[/]")
+                    continue
             if "train" in cfg.stages:
                 stage_train(layout, case_dir, cfg)
             if "register" in cfg.stages:

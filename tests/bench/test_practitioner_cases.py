@@ -375,3 +375,23 @@ def test_the_guides_check_poses_a_drifted_capture_again_with_one_focal_length(lo
     shutil.copytree(tmp_path / "datasets", other / "datasets", ignore=shutil.ignore_patterns("capture_0_reposed"))
     bench.stage_check(layout, other, "exhaustive", "simple_pinhole")
     assert len(posed) == 1
+
+
+def test_a_checked_case_stops_at_a_fold_the_check_cannot_mend(load_script, tmp_path):
+    """--check-captures trains a folded capture's larger side, or its re-posed dataset; a capture folded with neither
+    stops the case before training (street-20's capture_0: 5.1% of its pairs unexplained, no side, no views to drop)."""
+    bench = load_script("bench_practitioner")
+
+    def found(folded=False, matches_folded=False, larger_side=None):
+        return {"folded": folded, "matches": {"folded": matches_folded}, "larger_side": larger_side}
+
+    checks = {
+        "consistent": found(),
+        "folded_with_side": found(folded=True, larger_side=[0, 1, 2]),
+        "matches_folded": found(matches_folded=True),
+        "reposed_clean": {**found(matches_folded=True), "reposed": found()},
+        "reposed_still_folded": {**found(), "reposed": found(folded=True)},
+    }
+    (tmp_path / "capture_check.json").write_text(json.dumps(checks))
+    assert bench.unremedied_captures(tmp_path) == ["matches_folded", "reposed_still_folded"]
+
