@@ -24,6 +24,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader, RandIndicesEvalDataloader
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
+from rich.markup import escape
 from torch.nn import Parameter
 
 from nerfuser_ns.adapters import UnsupportedRunError
@@ -285,6 +286,8 @@ class NerfuserDataManager(VanillaDataManager):
         # getattr: fused runs saved before the field existed have no ``registration`` in their config.yml
         self.spec = read_fusion_spec(config.data, register=config.register_if_missing,
                                      registration_config=getattr(config, "registration", None))  # fmt: skip
+        for line in self.spec.capture_warnings():
+            CONSOLE.print(f"[yellow]nerfuser: warning: {escape(line)}[/]", soft_wrap=True, highlight=False)
         metadata = {METADATA_KEY: self.spec}
         if self.spec.has_test_images:
             self.train_dataparser_outputs = load_test_dataparser_outputs(self.spec, metadata, config.dataparser)

@@ -108,6 +108,15 @@ class FusionSpec:
     def origins(self) -> Float[np.ndarray, "n 3"]:
         return np.stack([n.origin for n in self.nerfs])
 
+    def capture_warnings(self) -> list[str]:
+        """One line per NeRF whose capture the registration's checks flagged (folded by COLMAP, or a drifted camera):
+        the run was trained on those poses, so the fused scene inherits them; said each time a fused run is loaded,
+        since a warning printed once at the start of a long registration scrolls away."""
+        return [f"NeRF {n.name}'s capture: {'; '.join(n.capture_findings)}, as the registration's checks found. The "
+                "run was trained on those poses and the fusion inherits them: check its dataset with "
+                "ns-nerfuser-check-capture, fix it as it advises and train again (docs/your_own_captures.md)"
+                for n in self.nerfs if n.capture_findings]  # fmt: skip
+
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Validation helpers
@@ -251,7 +260,8 @@ def read_registered_nerfs(path: Path | str, check_runs: bool = True) -> list[Ner
             name = item.name or f"nerf{item.index}"
             entries.append(NerfEntry(name=str(name), config_path=config_path, nerf_to_common=T,
                                      training_cameras=item.training_cameras,
-                                     colour_to_reference=item.colour_to_reference))  # fmt: skip
+                                     colour_to_reference=item.colour_to_reference,
+                                     capture_findings=item.capture_findings))  # fmt: skip
     except RegistrationFileError as e:
         raise FusionSpecError(one_line(str(e))) from None
     names = [e.name for e in entries]

@@ -135,6 +135,35 @@ def test_registration_record_of_ns_nerfuser_register(tmp_path, two_runs):
     np.testing.assert_allclose(spec.transforms[1], T_B)
 
 
+def test_a_capture_the_registration_flagged_is_named_whenever_the_fusion_loads(tmp_path, two_runs, capsys):
+    """The registration's capture checks found run b's capture folded: every load of the fused run (ns-train, ns-eval,
+    the viewers build the datamanager) says so in one line naming the NeRF; run a, clean, is not named."""
+    a, b = two_runs
+    matches = {"folded": True, "pairs": 630, "unexplained_pairs": 32, "unexplained_share": 0.0508}
+    record = {
+        "format_version": 1, "kind": "nerfuser_registration", "reference": {"index": 0, "name": "a"},
+        "nerfs": [{"name": "a", "config": str(a), "T_to_reference": np.eye(4).tolist()},
+                  {"name": "b", "config": str(b), "T_to_reference": T_B.tolist()}],
+        "pairs": [],
+        "capture_checks": {"a": {"folded": False, "matches": {**matches, "folded": False}},
+                           "b": {"folded": False, "matches": matches}},
+    }  # fmt: skip
+    (tmp_path / "registration.json").write_text(json.dumps(record))
+    spec_path = fspec.write_fusion_spec(tmp_path / "fusion.json", [a, b])
+    warnings = read_fusion_spec(spec_path).capture_warnings()
+    assert len(warnings) == 1 and warnings[0].startswith("NeRF b's capture: folded by COLMAP")
+    assert "32 of 630 verified image pairs (5.1%)" in warnings[0] and "ns-nerfuser-check-capture" in warnings[0]
+    capsys.readouterr()
+    fdata.NerfuserDataManagerConfig(data=spec_path).setup(device="cpu", test_mode="inference")
+    said = " ".join(capsys.readouterr().out.split())
+    assert "nerfuser: warning: NeRF b's capture: folded by COLMAP" in said and "NeRF a's" not in said
+    # a minimal registration file records no checks: nothing to say
+    entries = [{"name": "a", "config": str(a), "transform": np.eye(4).tolist()},
+               {"name": "b", "config": str(b), "transform": T_B.tolist()}]  # fmt: skip
+    registration_file(tmp_path / "registration.json", entries)
+    assert read_fusion_spec(spec_path).capture_warnings() == []
+
+
 def test_single_run_needs_no_registration(tmp_path, two_runs):
     spec = read_fusion_spec(fspec.write_fusion_spec(tmp_path / "fusion.json", [two_runs[0]]))
     assert len(spec.nerfs) == 1 and spec.registration_path is None

@@ -15,7 +15,7 @@ from, for display.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -361,8 +361,9 @@ class RegistrationResult:
     """Appearance matching: the reference NeRF's colour map to its training images (``map``, ``views``, ``pixels``)
     or why there is none (``skipped``); already composed into every ``colour_to_reference``."""
     capture_checks: dict | None = None
-    """Per NeRF name, the fold check of its training cameras (:class:`nerfuser_ns.capture_check.FoldCheck`'s
-    record): a capture COLMAP folded on repeated structure."""
+    """Per NeRF name, the checks of its capture (:func:`nerfuser_ns.registration.pipeline.check_captures`): the fold
+    check's record (:class:`nerfuser_ns.capture_check.FoldCheck`), with the match check's under ``matches`` and the
+    camera check's under ``camera``; :func:`capture_findings` says what they found wrong."""
     format_version: int = FORMAT_VERSION
     extra: dict[str, Any] = field(default_factory=dict)
     """Keys this version does not write (e.g. the benchmark kit's ``ground_truth``), kept as read."""
@@ -495,6 +496,9 @@ class NerfEntry:
     """Its training cameras in its own frame (the ``coverage`` blend method); None: unknown."""
     colour_to_reference: Float[np.ndarray, "3 4"] | None = field(default=None, compare=False)
     """Its colour map to the reference NeRF's colours (appearance matching); None: identity."""
+    capture_findings: tuple[str, ...] = field(default=(), compare=False)
+    """What the registration's checks of its capture found wrong (:func:`capture_findings`); a fold or a drifted
+    camera the run was trained with, which the fusion inherits."""
 
     @property
     def scale(self) -> float:
@@ -530,6 +534,30 @@ class RegisteredNerf:
     """Its training cameras, when recorded (checked)."""
     colour_to_reference: Float[np.ndarray, "3 4"] | None = None
     """Its colour map to the reference, when recorded (checked)."""
+    capture_findings: tuple[str, ...] = ()
+    """What the registration's checks of its capture found wrong (:func:`capture_findings`), when recorded."""
+
+
+def capture_findings(checks: Mapping[str, Any] | None) -> tuple[str, ...]:
+    """What one NeRF's capture checks (its ``capture_checks`` entry) found wrong, one phrase each; empty when they
+    found nothing or were not run (a record written before them, or a minimal file)."""
+    if not isinstance(checks, Mapping):
+        return ()
+    found = []
+    if checks.get("folded"):
+        views = f"{checks.get('suspect_views', '?')} of {checks.get('num_views', '?')} views"
+        found.append(f"folded by COLMAP in file order ({views} posed by the wrong copy of repeated structure)")
+    matches = checks.get("matches")
+    if isinstance(matches, Mapping) and matches.get("folded"):
+        share = matches.get("unexplained_share")
+        found.append(f"folded by COLMAP: its reconstruction does not explain {matches.get('unexplained_pairs', '?')} "
+                     f"of {matches.get('pairs', '?')} verified image pairs"
+                     + ("" if share is None else f" ({100 * share:.1f}%)"))  # fmt: skip
+    camera = checks.get("camera")
+    if isinstance(camera, Mapping) and camera.get("drifted"):
+        aspect = camera.get("aspect")
+        found.append("its camera drifted" + ("" if aspect is None else f" (fy/fx {aspect:.3f})"))
+    return tuple(found)
 
 
 def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
@@ -559,6 +587,8 @@ def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
     nerfs = data.get("nerfs")
     if not isinstance(nerfs, list) or not nerfs:
         raise RegistrationFileError(f"{path}: expected a non-empty list 'nerfs' of {{name, config, transform}}")
+    checks = data.get("capture_checks")
+    checks = checks if isinstance(checks, dict) else {}
     for i, item in enumerate(nerfs):
         where = f"{path}: nerfs[{i}]"
         if not isinstance(item, dict):
@@ -569,7 +599,8 @@ def iter_registered_nerfs(path: Path | str) -> Iterator[RegisteredNerf]:
             raise RegistrationFileError(f"{where}: missing {', '.join(missing)}")
         yield RegisteredNerf(i, item.get("name"), item["config"], key, item[key], item.get("checkpoint"),
                              TrainingCameras.from_record(item.get("training_cameras"), where),
-                             colour_map_from_record(item.get("colour_to_reference"), where))  # fmt: skip
+                             colour_map_from_record(item.get("colour_to_reference"), where),
+                             capture_findings(checks.get(str(item.get("name")))))  # fmt: skip
 
 
 def write_minimal_registration(nerfs: Sequence[NerfEntry], path: Path | str) -> Path:

@@ -20,6 +20,7 @@ from pathlib import Path, PurePath
 
 import tyro
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
@@ -27,6 +28,7 @@ from nerfuser_ns.registration import (
     RegistrationConfig,
     RegistrationError,
     RegistrationFailed,
+    capture_findings,
     register,
     work_dir_for,
     write_registration,
@@ -238,6 +240,14 @@ def print_summary(record: dict, console: Console = CONSOLE) -> None:
         for k, v in t.items()
     ]  # fmt: skip
     console.print("time (s): " + ", ".join(parts))
+    for name, checks in (record.get("capture_checks") or {}).items():
+        found = capture_findings(checks)
+        if found:  # said at the start too, but that scrolled away during the renders
+            what = escape(f"NeRF {short.get(name, name)}'s capture: {'; '.join(found)}")
+            console.print(f"[yellow]warning: {what}. "
+                          "These links were made from a run trained on those poses, which no registration mends: "
+                          "check its dataset with ns-nerfuser-check-capture and fix it as it advises "
+                          "(docs/your_own_captures.md)[/]", soft_wrap=True, highlight=False)  # fmt: skip
 
 
 def _print_graph(graph: dict, console: Console, pair: Callable[[list[str]], str]) -> None:

@@ -17,6 +17,8 @@ from nerfuser_ns import registration as reg
 from nerfuser_ns import sim3
 from nerfuser_ns.bench.ground_truth import score_registration
 from nerfuser_ns.cameras import Intrinsics
+from nerfuser_ns.capture_check import FoldCheck, IntrinsicsCheck
+from nerfuser_ns.match_check import MatchCheck
 
 
 def test_registration_file_round_trip(oc_record, tmp_path):
@@ -81,6 +83,48 @@ def test_capture_checks_are_a_typed_field_of_the_record(oc_record):
     assert result.capture_checks == checks and "capture_checks" not in result.extra
     assert result.to_record()["capture_checks"] == checks
     assert "capture_checks" not in reg.RegistrationResult.from_record(oc_record).to_record()
+
+
+def flagged_capture_checks() -> dict:
+    """Capture-check records as the registration writes them: capture "b" folded (by file order and by its matches)
+    with a drifted camera, capture "a" clean."""
+    square, stretched = (Intrinsics(fx=300, fy=f, cx=160, cy=120, width=320, height=240) for f in (300.0, 360.0))
+    suspect = tuple(f"f{i}" for i in range(11, 20))
+    folded = FoldCheck(40, 9.0, True, (("f10", "f11", 175.0), ("f19", "f20", 176.0)), suspect).to_record()
+    clean = FoldCheck(40, 9.0, True, (), ()).to_record()
+    unexplained = [(f"a{i}", f"b{i}") for i in range(10)]
+    explained = [(f"{s}{i}", f"{s}{i + 1}") for s in "ab" for i in range(95)]
+    return {
+        "a": {**clean, "matches": MatchCheck(True, 190, [], explained).to_record(),
+              "camera": IntrinsicsCheck(square).to_record()},
+        "b": {**folded, "matches": MatchCheck(True, 200, unexplained, explained).to_record(),
+              "camera": IntrinsicsCheck(stretched).to_record()},
+    }  # fmt: skip
+
+
+def test_capture_findings_name_what_the_checks_found_wrong():
+    checks = flagged_capture_checks()
+    assert reg.capture_findings(checks["a"]) == ()
+    found = reg.capture_findings(checks["b"])
+    assert len(found) == 3
+    assert "folded by COLMAP in file order (9 of 40 views" in found[0]
+    assert "does not explain 10 of 200 verified image pairs (5.0%)" in found[1]
+    assert found[2] == "its camera drifted (fy/fx 1.200)"
+    # a record written before the match and camera checks, or none at all
+    assert reg.capture_findings({k: v for k, v in checks["b"].items() if k not in ("matches", "camera")}) == found[:1]
+    assert reg.capture_findings(None) == () and reg.capture_findings("folded") == ()
+
+
+def test_capture_findings_travel_with_each_registered_nerf(oc_record, tmp_path):
+    record = {**oc_record, "capture_checks": flagged_capture_checks()}
+    names = [n["name"] for n in record["nerfs"]]
+    record["capture_checks"] = dict(zip(names, record["capture_checks"].values(), strict=False))
+    path = tmp_path / "registration.json"
+    path.write_text(json.dumps(record))
+    found = [item.capture_findings for item in reg.iter_registered_nerfs(path)]
+    assert found[0] == () and len(found[1]) == 3
+    path.write_text(json.dumps(oc_record))  # no checks recorded: nothing found
+    assert all(item.capture_findings == () for item in reg.iter_registered_nerfs(path))
 
 
 def test_minimal_form(tmp_path):

@@ -64,3 +64,24 @@ def test_the_camera_optimiser_tip_names_the_runs_trained_with_one():
     assert A in tip and B not in tip and "ngp" not in tip  # only the run that had one
     assert camera_optimizer_tip([run(A, "off"), run(B, None)]) is None
     assert camera_optimizer_tip([SimpleNamespace(name=A)]) is None  # a renderer that does not say (tests' fakes)
+
+
+def test_the_summary_repeats_what_the_capture_checks_found():
+    """A folded capture is warned about at the start of the registration; the summary says it again, by the NeRF's
+    short name, since the start scrolled away during the renders."""
+    record = _record([A, B])
+    record["capture_checks"] = {
+        A: {"checked": True, "folded": False, "matches": {"folded": False}, "camera": {"drifted": False}},
+        B: {"checked": False, "folded": False, "matches": {"folded": True, "pairs": 630, "unexplained_pairs": 32,
+                                                           "unexplained_share": 0.0508}},
+    }  # fmt: skip
+    console = Console(record=True, width=100)
+    print_summary(record, console)
+    said = " ".join(console.export_text().split())
+    assert ("warning: NeRF part_b/nerfacto/2026-11-27_101500's capture: folded by COLMAP: its reconstruction does not "
+            "explain 32 of 630 verified image pairs (5.1%)") in said  # fmt: skip
+    assert "ns-nerfuser-check-capture" in said and "part_a/nerfacto/2026-11-27_101500's capture" not in said
+    record["capture_checks"][B]["matches"]["folded"] = False
+    console = Console(record=True, width=100)
+    print_summary(record, console)
+    assert "warning" not in console.export_text()
