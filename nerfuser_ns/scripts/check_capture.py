@@ -50,6 +50,15 @@ from nerfuser_ns.scripts.cli import parse
 
 CONSOLE = Console(soft_wrap=True)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
+POSE_AGAIN_ADVICE = (
+    "pose the capture again and check again: with ns-process-data's --matching-method sequential where its files are "
+    "in the order they were taken (each view is then matched with its neighbours, not with a far copy of the same "
+    "structure), else renamed in that order first; where no view holds something unique to its part of the place, "
+    "film it again with such views"
+)
+"""What is left for a capture the matches show folded with no side to train on and no few views to leave out. Whether
+the files are in filmed order cannot be told from small turns between them (views of one facade all look one way in
+any order), so the user is asked."""
 
 
 @dataclass
@@ -163,8 +172,7 @@ def _report_matches(path: Path, matches: MatchCheck) -> bool:
         CONSOLE.print(f"  every unexplained pair goes through {names}, posed inconsistently with the other views; a "
                       "run trained on these poses cannot be registered correctly")  # fmt: skip
         return True  # what to do follows (CheckCaptureCommand._repose)
-    CONSOLE.print("  pose the capture again (another matcher, or without those views) and check again; a run trained "
-                  "on these poses cannot be registered correctly")  # fmt: skip
+    CONSOLE.print(f"  {POSE_AGAIN_ADVICE}; a run trained on these poses cannot be registered correctly")
     return True
 
 
