@@ -32,6 +32,15 @@ keep many pairs, as our rooms, where matches between copies of the room are expl
 sides to train on. These three constants were set on the folded captures on disk (street-8: 24 views face the other
 facade, its sides cut exactly; room-7 and row-houses-3/4 refused), not on a fresh one.
 
+**What it cannot see.** Only the pairs COLMAP's matcher compared can contradict a pose: exhaustive matching (what
+``ns-process-data --matching-method exhaustive`` runs) compares every pair; sequential matching compares each view
+with its neighbours in file order, vocabulary-tree matching with its most similar views. Views posed by a fold against
+views they were never compared with then leave no pair to contradict them: a street capture in a walk's order, posed
+by sequential matching, passed the check with 25 of its 52 posed views misposed
+(``reports/repose_in_order_street20.md``).
+The database's ``matches`` table has a row per compared pair, so the check says how many it compared
+(:meth:`MatchCheck.blind_spot`).
+
 The database is opened read-only with Python's ``sqlite3`` (COLMAP's own ``scripts/python/database.py`` reads it the
 same way): ``pycolmap.Database.open`` migrates an older COLMAP's database in place, and a check never writes its inputs.
 """
@@ -92,6 +101,10 @@ class MatchCheck:
     explained: list[tuple[str, str]] = field(default_factory=list)
     """The image names of each pair it explains."""
     reason: str | None = None
+    compared_pairs: int | None = None
+    """Image pairs COLMAP's matcher compared at all (None: the database does not say)."""
+    possible_pairs: int | None = None
+    """Image pairs of the database's images: what exhaustive matching compares."""
 
     @property
     def unexplained_share(self) -> float:
@@ -109,6 +122,16 @@ class MatchCheck:
                 f"verified image pairs ({100 * self.unexplained_share:.1f}%, above "
                 f"{100 * MAX_UNEXPLAINED_SHARE:.0f}%): some views are posed inconsistently with the matches between "
                 "them, as when repeated structure folds a capture")  # fmt: skip
+
+    def blind_spot(self) -> str | None:
+        """One line when COLMAP compared only some of the image pairs (sequential or vocabulary-tree matching), else
+        None: a fold between views it never compared leaves no verified pair to contradict it."""
+        if self.compared_pairs is None or not self.possible_pairs or self.compared_pairs >= self.possible_pairs:
+            return None
+        return (f"COLMAP compared {self.compared_pairs} of its {self.possible_pairs} image pairs (exhaustive matching "
+                "compares them all): views posed by a fold against views they were never compared with leave no pair "
+                "to contradict them, so this check vouches only for the pairs compared (on a generated street "
+                "posed by sequential matching it passed a capture with 25 of 52 views misposed)")  # fmt: skip
 
     def views(self) -> list[tuple[str, int]]:
         """Image names by how many unexplained pairs they are in, most first: where to look."""
@@ -146,7 +169,8 @@ class MatchCheck:
         return {"checked": self.checked, "pairs": self.pairs, "unexplained_pairs": len(self.unexplained),
                 "unexplained_share": round(self.unexplained_share, 4), "folded": self.folded,
                 "smaller_side": None if smaller is None else list(smaller),
-                "repose_without": None if repose is None else list(repose), "reason": self.reason}  # fmt: skip
+                "repose_without": None if repose is None else list(repose), "reason": self.reason,
+                "compared_pairs": self.compared_pairs, "possible_pairs": self.possible_pairs}  # fmt: skip
 
 
 def pair_cover(pairs: Collection[tuple[str, str]]) -> list[str]:
@@ -240,6 +264,21 @@ def read_verified_pairs(
     return names, keypoints, pairs
 
 
+def compared_pairs(database: Path | str) -> tuple[int, int] | None:
+    """``(pairs compared, pairs of its images)`` of a COLMAP database, read-only: its ``matches`` table holds one row
+    per image pair the matcher compared, matched or not; None for a database without that table."""
+    uri = f"{Path(database).resolve().as_uri()}?mode=ro&immutable=1"
+    try:
+        with sqlite3.connect(uri, uri=True) as con:
+            images = con.execute("SELECT COUNT(*) FROM images").fetchone()[0]
+            compared = con.execute("SELECT COUNT(*) FROM matches").fetchone()[0]
+    except sqlite3.OperationalError:  # no matches table (a database written by another tool)
+        return None
+    except sqlite3.Error as e:
+        raise ValueError(f"{database}: not a readable COLMAP database ({e})") from None
+    return int(compared), images * (images - 1) // 2
+
+
 def match_check(
     reconstruction: pycolmap.Reconstruction, database: Path | str, views: Collection[str] | None = None
 ) -> MatchCheck:
@@ -266,7 +305,9 @@ def match_check(
         focal = 0.5 * (cam_a.mean_focal_length() + cam_b.mean_focal_length())  # normalised units to pixels
         judged += 1
         (explained if np.mean(d * focal < SAMPSON_PX) >= EXPLAINED_SHARE else unexplained).append((n1, n2))
-    return MatchCheck(checked=True, pairs=judged, unexplained=unexplained, explained=explained)
+    compared, possible = compared_pairs(database) or (None, None)
+    return MatchCheck(checked=True, pairs=judged, unexplained=unexplained, explained=explained,
+                      compared_pairs=compared, possible_pairs=possible)  # fmt: skip
 
 
 def check_dataset_matches(path: Path | str) -> MatchCheck:

@@ -98,7 +98,7 @@ def score(dataset: Path, true_c2w: np.ndarray) -> dict:
 
 def repose(images: Path, order: np.ndarray, out: Path, log: Path) -> float:
     """Copy ``images`` (``view_<i>.png``) as ``shot_<k>.png`` in ``order`` and pose them with sequential matching into
-    ``out``; the seconds ns-process-data took. ``out`` keeps which view each frame is (:data:`SOURCE_FRAMES_NAME`)."""
+    ``out``; the seconds ns-process-data took."""
     shots = out.parent / "images_in_order"
     shutil.rmtree(shots, ignore_errors=True)
     shots.mkdir(parents=True)
@@ -113,9 +113,14 @@ def repose(images: Path, order: np.ndarray, out: Path, log: Path) -> float:
     seconds = time.perf_counter() - start
     if proc.returncode != 0 or not (out / "transforms.json").is_file():
         raise SystemExit(f"ns-process-data failed on {shots} (exit {proc.returncode}); see {log}")
-    names = {f"frame_{k + 1:05d}.png": f"view_{i:05d}.png" for k, i in enumerate(order)}
-    write_text_atomic(out / SOURCE_FRAMES_NAME, json.dumps(names, indent=1) + "\n")
     return seconds
+
+
+def write_source_frames(order: np.ndarray, dataset: Path) -> None:
+    """Which view each frame of the re-posed dataset is, as the benchmark's re-posed datasets keep it
+    (:data:`SOURCE_FRAMES_NAME`: ns-process-data's name -> the name it gave that view in the case's own dataset)."""
+    names = {f"frame_{k + 1:05d}.png": f"frame_{i + 1:05d}.png" for k, i in enumerate(order)}
+    write_text_atomic(dataset / SOURCE_FRAMES_NAME, json.dumps(names, indent=1) + "\n")
 
 
 def main(cfg: ReposeInOrder) -> None:
@@ -127,15 +132,17 @@ def main(cfg: ReposeInOrder) -> None:
         for cap in layout.captures:
             if cfg.captures and cap.name not in cfg.captures:
                 continue
-            if not layout.name.startswith(("street", "row-houses")):
+            if layout.layout not in ("street", "row-houses"):
                 raise SystemExit(f"{case}: the walk order is defined for street layouts only")
             out = cfg.output_root / case_dir.name / cap.name
             out.mkdir(parents=True, exist_ok=True)
             order = walk_order(cap.c2w_world)
             dataset = out / "dataset"
-            seconds = None
-            if not (dataset / SOURCE_FRAMES_NAME).is_file():
+            if not (dataset / "transforms.json").is_file():
                 seconds = repose(images_done(case_dir, cap.name).parent, order, dataset, out / "process_data.log")
+                write_text_atomic(out / "seconds.txt", f"{seconds:.1f}\n")
+            seconds = float((out / "seconds.txt").read_text()) if (out / "seconds.txt").is_file() else None
+            write_source_frames(order, dataset)
             row = {"case": case, "capture": cap.name, "views": cap.num_views,
                    "exhaustive, generated order": score(dataset_transforms(case_dir, cap.name).parent, cap.c2w_world),
                    "sequential, walk order": score(dataset, cap.c2w_world), "seconds": seconds}  # fmt: skip

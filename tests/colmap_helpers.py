@@ -21,11 +21,12 @@ NUM_VIEWS = 12
 FOLDED = (3, 7, 10)
 """Views the folded model poses by the twin (unordered: spread over the file order)."""
 
-# COLMAP's own table definitions (src/colmap/scene/database.cc), the three this check reads.
+# COLMAP's own table definitions (src/colmap/scene/database.cc), the four this check reads.
 SCHEMA = """
 CREATE TABLE images (image_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, name TEXT NOT NULL UNIQUE,
     camera_id INTEGER NOT NULL);
 CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB);
+CREATE TABLE matches (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB);
 CREATE TABLE two_view_geometries (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL, cols INTEGER NOT NULL,
     data BLOB, config INTEGER NOT NULL, F BLOB, E BLOB, H BLOB, qvec BLOB, tvec BLOB);
 """
@@ -85,9 +86,12 @@ def twin(pose: np.ndarray) -> np.ndarray:
     return (cam_from_world @ np.linalg.inv(half_turn))[:3]
 
 
-def write_colmap_capture(folder: Path, folded: bool, scene=street, twins: tuple[int, ...] = FOLDED) -> Path:
+def write_colmap_capture(
+    folder: Path, folded: bool, scene=street, twins: tuple[int, ...] = FOLDED, overlap: int | None = None
+) -> Path:
     """An ns-process-data-like folder: transforms.json, colmap/database.db and the text model colmap/sparse/0; with
-    ``folded``, the views ``twins`` posed by the half-turn twin."""
+    ``folded``, the views ``twins`` posed by the half-turn twin. Every pair of views compared (exhaustive matching),
+    or with ``overlap`` each view with the next ``overlap`` files only (sequential matching)."""
     points, poses = scene()
     num_views = len(poses)
     names = [f"frame_{i + 1:05d}.png" for i in range(num_views)]
@@ -103,13 +107,13 @@ def write_colmap_capture(folder: Path, folded: bool, scene=street, twins: tuple[
         con.execute("INSERT INTO keypoints VALUES (?, ?, 6, ?)", (i + 1, len(points), kp.tobytes()))
         seen_by.append(seen)
     for a in range(num_views):
-        for b in range(a + 1, num_views):
+        for b in range(a + 1, num_views if overlap is None else min(num_views, a + overlap + 1)):
             common = np.flatnonzero(seen_by[a] & seen_by[b])
+            m, pair_id = np.stack([common, common], axis=1).astype(np.uint32), (a + 1) * PAIR_ID_BASE + b + 1
+            con.execute("INSERT INTO matches VALUES (?, ?, 2, ?)", (pair_id, len(m), m.tobytes()))  # compared
             if len(common):
-                m = np.stack([common, common], axis=1).astype(np.uint32)
                 con.execute("INSERT INTO two_view_geometries (pair_id, rows, cols, data, config) "
-                            "VALUES (?, ?, 2, ?, 2)",
-                            ((a + 1) * PAIR_ID_BASE + b + 1, len(m), m.tobytes()))  # fmt: skip
+                            "VALUES (?, ?, 2, ?, 2)", (pair_id, len(m), m.tobytes()))  # fmt: skip
     con.commit()
     con.close()
     model = folder / "colmap" / "sparse" / "0"

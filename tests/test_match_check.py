@@ -136,6 +136,31 @@ def test_cli_reports_a_fold_of_unordered_views_and_exits_1(consistent, folded, c
     assert cli.POSE_AGAIN_ADVICE in " ".join(out.split())
 
 
+def test_the_check_says_when_colmap_compared_only_some_pairs(consistent, tmp_path, capsys):
+    """Exhaustive matching compares every pair; sequential matching only neighbours in file order, which leaves a
+    fold between far views nothing to contradict it: the check says how many pairs it could judge from."""
+    exhaustive = check_dataset_matches(consistent)
+    assert (exhaustive.compared_pairs, exhaustive.possible_pairs) == (NUM_VIEWS * (NUM_VIEWS - 1) // 2,) * 2
+    assert exhaustive.blind_spot() is None
+    sequential = check_dataset_matches(write_colmap_capture(tmp_path / "sequential", folded=False, overlap=2))
+    assert sequential.compared_pairs == 2 * NUM_VIEWS - 3 and sequential.possible_pairs == exhaustive.possible_pairs
+    assert not sequential.folded and sequential.pairs <= sequential.compared_pairs
+    said = sequential.blind_spot()
+    assert f"COLMAP compared {2 * NUM_VIEWS - 3} of its {exhaustive.possible_pairs} image pairs" in said
+    assert sequential.to_record()["compared_pairs"] == 2 * NUM_VIEWS - 3
+    assert cli.run(cli.CheckCaptureCommand([tmp_path / "sequential"])) == 0  # a caveat, not a finding
+    out = " ".join(capsys.readouterr().out.split())
+    assert "explain its verified matches" in out and "but COLMAP compared 21 of its 66 image pairs" in out
+    assert cli.run(cli.CheckCaptureCommand([consistent])) == 0 and "COLMAP compared" not in capsys.readouterr().out
+    # a database without COLMAP's matches table (written by another tool) does not say
+    con = sqlite3.connect(consistent / "colmap" / "database.db")
+    con.execute("DROP TABLE matches")
+    con.commit()
+    con.close()
+    unknown = check_dataset_matches(consistent)
+    assert unknown.compared_pairs is None and unknown.blind_spot() is None and unknown.pairs == exhaustive.pairs
+
+
 def _two_way_names() -> tuple[set[str], set[str]]:
     names = {f"frame_{i + 1:05d}.png" for i in range(TWO_WAY_VIEWS)}
     right = {f"frame_{i + 1:05d}.png" for i in TWO_WAY_RIGHT}
