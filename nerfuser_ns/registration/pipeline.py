@@ -253,22 +253,38 @@ def _gist(reason: str) -> str:
     return reason
 
 
-def every_choice_failed(attempts: Sequence[dict], work_dir: Path | str, capture_checks: dict | None = None) -> str:
+def every_choice_failed(
+    attempts: Sequence[dict], work_dir: Path | str, capture_checks: dict | None = None, num_runs: int | None = None
+) -> str:
     """The one-line error when every pose source of the automatic choice failed: what each found, then the causes
     left (runs of different places, or a capture whose COLMAP poses are inconsistent, which no registration mends),
-    naming the runs whose capture checks (:func:`check_captures`) found a fold."""
+    naming the runs whose capture checks (:func:`check_captures`) found a fold; where the checks vouch for all
+    ``num_runs`` runs' poses, the causes without a fold."""
     found = "; ".join(f"{a['source']} ({a['mode']}): {_gist(a['error'])}" for a in attempts)
-    folded = [name for name, c in (capture_checks or {}).items()
-              if c.get("folded") or (c.get("matches") or {}).get("folded")]  # fmt: skip
+    checks = capture_checks or {}
+    folded = [name for name, c in checks.items() if c.get("folded") or (c.get("matches") or {}).get("folded")]
     if folded:
         cause = (f"The capture check found {', '.join(folded)} trained on folded COLMAP poses (warned above), which no "
                  "registration mends: pose that capture again, check it with ns-nerfuser-check-capture and train again")
+    elif num_runs is not None and len(checks) == num_runs and all(_vouched(c) for c in checks.values()):
+        cause = ("The capture checks found every run's COLMAP poses consistent (each explains all its matches), so a "
+                 "fold is not the cause: either the runs show too little of the same place, or a check refused a right "
+                 "link (each reason above says how to loosen its check; judge a link kept that way by its blend)")
     else:
         cause = ("Either the runs do not show the same place, or a capture's COLMAP poses are inconsistent (repeated "
                  "structure can fold a reconstruction, and a run trained on it cannot be registered): check each "
                  "dataset with ns-nerfuser-check-capture")
     return (f"no pose source registered the runs, {len(attempts)} tried: {found}. {cause}; see "
             f"docs/your_own_captures.md; the renders stay in {work_dir} for the next try")  # fmt: skip
+
+
+def _vouched(checks: dict) -> bool:
+    """Whether one run's capture checks vouch for its poses: matched exhaustively, every match explained by them, no
+    fold in file order."""
+    matches = checks.get("matches") or {}
+    compared, possible = matches.get("compared_pairs"), matches.get("possible_pairs")
+    return (bool(matches.get("checked")) and not matches.get("folded") and not checks.get("folded")
+            and compared is not None and compared == possible)  # fmt: skip
 
 
 def _choice_list(choices: Sequence[SamplingChoice]) -> str:
@@ -322,7 +338,8 @@ def register(
                 if not tried:
                     raise
                 summary = every_choice_failed([*tried, {"source": sc.source, "mode": choice.config.mode,
-                                                        "error": reason}], work_dir, capture_checks)  # fmt: skip
+                                                        "error": reason}], work_dir, capture_checks,
+                                              len(renderers))  # fmt: skip
                 if isinstance(e, RegistrationFailed):
                     raise type(e)(summary, e.result) from e
                 raise RegistrationError(summary) from e

@@ -282,6 +282,15 @@ def test_automatic_sampling_falls_back_and_says_so(oc_renderers, work, monkeypat
         {"a": {"folded": False, "matches": {"folded": False}}, "b": {"folded": False, "matches": {"folded": True}}})
     assert "training (sfm): b: separate SfM model. The capture check found b trained on folded COLMAP poses" in text
     assert "Either the runs" not in text and "render more" not in text
+    # every run's poses vouched for by the checks (matched exhaustively, every match explained): no fold to blame
+    clean = {"folded": False, "matches": {"checked": True, "folded": False, "compared_pairs": 66, "possible_pairs": 66}}
+    attempt = [{"source": "training", "mode": "sfm", "error": "depth check failed"}]
+    text = reg_pipeline.every_choice_failed(attempt, work, {"a": clean, "b": clean}, num_runs=2)
+    assert "found every run's COLMAP poses consistent" in text and "or a check refused a right link" in text
+    assert "repeated structure" not in text
+    sequential = {**clean, "matches": {**clean["matches"], "compared_pairs": 21}}  # the check's blind spot
+    for checks, count in (({"a": clean}, 2), ({"a": clean, "b": sequential}, 2), ({"a": clean, "b": clean}, None)):
+        assert "repeated structure can fold" in reg_pipeline.every_choice_failed(attempt, work, checks, num_runs=count)
     # one pose source as given: its own error, unchanged
     with pytest.raises(reg.RegistrationError, match="^hemisphere: depth check failed .*render more poses$"):
         reg.register(oc_renderers, reg.RegistrationConfig(sampling=reg.PoseSamplingConfig(source="hemisphere")), work,
