@@ -37,7 +37,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     dataset_transforms,
     images_done,
     misposed_frames,
-    view_indices,
+    stored_poses,
 )
 from nerfuser_ns.capture_check import check_dataset
 from nerfuser_ns.files import write_text_atomic
@@ -76,15 +76,12 @@ def walk_order(c2w: np.ndarray) -> np.ndarray:
 
 def score(dataset: Path, true_c2w: np.ndarray) -> dict:
     """A dataset's posing against the capture's true poses, and both fold checks' verdicts."""
-    transforms = dataset / "transforms.json"
-    frames = json.loads(transforms.read_text())["frames"]
-    idx = view_indices([str(f["file_path"]) for f in frames], dataset)
-    stored = np.array([f["transform_matrix"] for f in frames], dtype=np.float64)
+    idx, stored = stored_poses(dataset / "transforms.json")
     est = estimate_sim3_from_poses(stored, true_c2w[idx])
     matches = check_dataset_matches(dataset)
     order = check_dataset(dataset)
     return {
-        "posed": len(frames),
+        "posed": len(idx),
         "misposed": int(misposed_frames(stored, true_c2w[idx]).sum()),
         "rot_err_deg_median": float(np.median(est.rot_residuals_deg)),
         "match_pairs": matches.pairs,

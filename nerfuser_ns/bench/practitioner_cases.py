@@ -434,7 +434,7 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
     from their mean)."""
     misposed = colmap_misposed(cap, case_dir)  # what COLMAP made of the whole capture
     # the ties are those of the views the run trained on (the larger side of a checked capture)
-    idx, stored = _stored_poses(training_transforms(case_dir, cap.name))
+    idx, stored = stored_poses(training_transforms(case_dir, cap.name))
     true = cap.c2w_world[idx]
     world_scale = float(np.linalg.norm(true[:, :3, 3] - true[:, :3, 3].mean(0), axis=-1).mean())
     data_to_world, rot_err, centre_err = tie_to_world(stored, true, world_scale)
@@ -469,12 +469,12 @@ def colmap_misposed(cap, case_dir: Path, transforms: Path | None = None) -> dict
     ``transforms`` names another), whether it is misposed (:func:`misposed_frames`, against the capture's true
     poses)."""
     transforms = dataset_transforms(case_dir, cap.name) if transforms is None else transforms
-    idx, stored = _stored_poses(transforms)
+    idx, stored = stored_poses(transforms)
     files = [str(f["file_path"]) for f in json.loads(transforms.read_text())["frames"]]
     return dict(zip(files, map(bool, misposed_frames(stored, cap.c2w_world[idx])), strict=True))
 
 
-def _stored_poses(transforms: Path) -> tuple[np.ndarray, np.ndarray]:
+def stored_poses(transforms: Path) -> tuple[np.ndarray, np.ndarray]:
     """A dataset's frame numbers and stored camera-to-world poses, in file order."""
     frames = json.loads(transforms.read_text())["frames"]
     idx = view_indices([str(f["file_path"]) for f in frames], transforms.parent)
