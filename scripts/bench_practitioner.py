@@ -179,8 +179,8 @@ class BenchPractitioner:
     capture's COLMAP dataset and follow its advice as a user would: a capture it finds folded trains on its larger
     side, one with a few misposed views is posed again without them, one whose camera drifted is posed again with one
     focal length (:func:`stage_check`). A folded capture it finds no remedy for (no side free of the fold, too many
-    views to leave out) stops the case before training: the check then advises posing it again with another matcher,
-    which is a user's choice, not a rule. Case folders get the suffix ``-checked``."""
+    views to leave out) stops the case before training: the check then advises posing it again, which is a user's
+    choice, not a rule. Case folders get the suffix ``-checked``."""
     share_captures: bool = True
     """Before the ``scene`` stage of a case folder with no images yet, copy the images, COLMAP datasets and test views
     of the same case trained the other way (the other ``--camera-optimizer`` folder), when that folder has them all:

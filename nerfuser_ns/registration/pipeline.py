@@ -59,7 +59,7 @@ from nerfuser_ns.registration.pairwise import (
     render_and_lift,
     views_matched,
 )
-from nerfuser_ns.registration.record import RegistrationResult, work_dir_for, write_registration
+from nerfuser_ns.registration.record import RegistrationResult, capture_folded, work_dir_for, write_registration
 from nerfuser_ns.registration.reference_colour import compose_with_reference, reference_colour
 from nerfuser_ns.registration.refine import refine_on_matches, refine_transforms
 from nerfuser_ns.registration.render_cache import (
@@ -262,7 +262,7 @@ def every_choice_failed(
     ``num_runs`` runs' poses, the causes without a fold."""
     found = "; ".join(f"{a['source']} ({a['mode']}): {_gist(a['error'])}" for a in attempts)
     checks = capture_checks or {}
-    folded = [name for name, c in checks.items() if c.get("folded") or (c.get("matches") or {}).get("folded")]
+    folded = [name for name, c in checks.items() if capture_folded(c)]
     if folded:
         cause = (f"The capture check found {', '.join(folded)} trained on folded COLMAP poses (warned above), which no "
                  "registration mends: pose that capture again, check it with ns-nerfuser-check-capture and train again")
@@ -283,8 +283,7 @@ def _vouched(checks: dict) -> bool:
     fold in file order."""
     matches = checks.get("matches") or {}
     compared, possible = matches.get("compared_pairs"), matches.get("possible_pairs")
-    return (bool(matches.get("checked")) and not matches.get("folded") and not checks.get("folded")
-            and compared is not None and compared == possible)  # fmt: skip
+    return bool(matches.get("checked")) and not capture_folded(checks) and compared is not None and compared == possible
 
 
 def _choice_list(choices: Sequence[SamplingChoice]) -> str:

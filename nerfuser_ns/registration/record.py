@@ -538,6 +538,12 @@ class RegisteredNerf:
     """What the registration's checks of its capture found wrong (:func:`capture_findings`), when recorded."""
 
 
+def capture_folded(checks: Mapping[str, Any]) -> bool:
+    """Whether one NeRF's capture checks (its ``capture_checks`` entry) found its COLMAP poses folded, by file order
+    or by its matches."""
+    return bool(checks.get("folded") or (checks.get("matches") or {}).get("folded"))
+
+
 def capture_findings(checks: Mapping[str, Any] | None) -> tuple[str, ...]:
     """What one NeRF's capture checks (its ``capture_checks`` entry) found wrong, one phrase each; empty when they
     found nothing or were not run (a record written before them, or a minimal file)."""
