@@ -1,5 +1,8 @@
 """Where the cross-render depth check looks: a practitioner case's registered link and its true link, cross-rendered at
-each NeRF's views evenly spread, or nearest the other NeRF's views under the link (what the self-check now uses).
+each NeRF's views evenly spread, nearest the other NeRF's views under the link, or nearest among the views rendered at
+training cameras (``training``: what the self-check now uses, :func:`nerfuser_ns.registration.self_check.depth_views`).
+``--scale-errors`` adds the truth with NeRF 1's scale off by each given log scale about its origin (a link the depth
+check must still refuse at the views it uses).
 
 The views that share the most SfM points with the other NeRF (the NCC's, and the depth's before) are the content an
 SfM link was fitted to; the registration file records the check there (``pairs[].self_check``), printed beside::
@@ -17,7 +20,7 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +32,7 @@ from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layo
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
 from nerfuser_ns.registration.render_cache import ViewSet, load_render_intrinsics
-from nerfuser_ns.registration.self_check import nearest_views, spread_views, view_nccs
+from nerfuser_ns.registration.self_check import depth_views, nearest_views, spread_views, view_nccs
 from nerfuser_ns.renderers import NerfstudioRenderer
 
 
@@ -41,6 +44,8 @@ class DepthCheckViews:
     """``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (the case folder, the registration file in it)."""
     report: Path
     """Markdown report (a JSON of the rows beside it)."""
+    scale_errors: list[float] = field(default_factory=list)
+    """Also check the truth with NeRF 1 scaled by ``exp(e)`` about its origin, for each ``e`` (log scale)."""
 
 
 @dataclass
@@ -69,7 +74,13 @@ def direction(src: ViewSet, dst, T: np.ndarray, order: list[int], intr, cfg: Reg
     return _median(scores), _median(depths)
 
 
-def measure(spec: str, console: Console) -> tuple[list[Row], dict]:
+def scaled(T: np.ndarray, log_scale: float) -> np.ndarray:
+    """``T`` (a NeRF -> reference SIM(3)) with its scale off by ``log_scale`` about the NeRF's origin."""
+    c, s = T[:3, 3], float(np.exp(log_scale))
+    return sim3.make_sim3(np.eye(3), c - s * c, s) @ T
+
+
+def measure(spec: str, scale_errors: list[float], console: Console) -> tuple[list[Row], dict]:
     case, case_dir, registration_path = case_registration(spec)
     reg = read_registration(registration_path)
     layout = case_layout(case)
@@ -84,6 +95,8 @@ def measure(spec: str, console: Console) -> tuple[list[Row], dict]:
         "registered": np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in reg["nerfs"]]),
         "truth": truth,
     }
+    for e in scale_errors:
+        links[f"truth, scale {e:+g}"] = np.stack([truth[0], scaled(truth[1], e)])
     cfg = RegistrationConfig(colour_views=0)
     rows = []
     for label, T in links.items():
@@ -94,6 +107,7 @@ def measure(spec: str, console: Console) -> tuple[list[Row], dict]:
         orders = {
             "spread": spread,
             "nearest": [nearest_views(views[0], T_01, views[1]), nearest_views(views[1], T_10, views[0])],
+            "training": [depth_views(views[0], T_01, views[1]), depth_views(views[1], T_10, views[0])],
         }
         for choice, (o0, o1) in orders.items():
             n01, d01 = direction(views[0], renderers[1], T_01, o0, intr, cfg)
@@ -120,11 +134,11 @@ def main(cfg: DepthCheckViews) -> None:
     console = Console()
     rows, recorded = [], []
     for spec in cfg.cases:
-        r, rec = measure(spec, console)
+        r, rec = measure(spec, cfg.scale_errors, console)
         rows += r
         recorded.append(rec)
     lines = [
-        "# The depth check at spread and nearest views",
+        "# The depth check at spread, nearest and nearest training views",
         "",
         f"`python scripts/depth_check_views.py {' '.join(sys.argv[1:])}`",
         "",

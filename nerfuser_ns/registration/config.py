@@ -401,7 +401,8 @@ class RegistrationConfig:
     passed at NCC 0.62. Fixed on that drive's true link and its perturbations
     (reports/depth_check_calibration_drive6.md): the exact link 0.007, links within 1 deg / 0.05 units / 0.05 in log
     scale <= 0.049, scale errors of 0.1 0.103, the wrong link 0.207; on the demo pair, checked after, 0.008, <= 0.027
-    and 0.113 (reports/depth_check_calibration_demo.md)."""
+    and 0.113 (reports/depth_check_calibration_demo.md). Compared at each NeRF's views nearest the other's, among
+    those rendered at training cameras where there are any (``self_check.depth_views``), as it was calibrated."""
     colour_views: int = 16
     """Appearance matching: views per checked pair and direction the colour maps are fitted on, evenly spread over
     each NeRF's views and rendered at half size (each NeRF renders its own views brighter than the other does, by a

@@ -18,7 +18,14 @@ from nerfuser_ns import sim3
 from nerfuser_ns.bench import scenes
 from nerfuser_ns.registration import pipeline as reg_pipeline
 from nerfuser_ns.registration.render_cache import ViewSet
-from nerfuser_ns.registration.self_check import depth_log_ratio, failure_message, nearest_views, passed, view_nccs
+from nerfuser_ns.registration.self_check import (
+    depth_log_ratio,
+    depth_views,
+    failure_message,
+    nearest_views,
+    passed,
+    view_nccs,
+)
 from nerfuser_ns.renderers import RenderBatch
 from nerfuser_ns.spec import FusionSpecError, read_registered_nerfs
 
@@ -81,10 +88,10 @@ def test_the_depth_is_compared_at_the_views_nearest_the_other_nerf(oc_renderers,
     centre = sim3.transform_points(T[1], views[1].c2w[:, :3, 3]).mean(axis=0)
     T[1] = sim3.make_sim3(np.exp(0.2) * np.eye(3), centre - np.exp(0.2) * centre) @ T[1]
     T_01 = sim3.relative_sim3(T[1], T[0])
-    near = nearest_views(views[0], T_01, views[1])
+    near = depth_views(views[0], T_01, views[1])
     n = config.self_check_views
     intr = config.sampling.intrinsics()
-    order = {(0, 1): near[::-1], (1, 0): nearest_views(views[1], sim3.invert_sim3(T_01), views[0])[::-1]}
+    order = {(0, 1): near[::-1], (1, 0): depth_views(views[1], sim3.invert_sim3(T_01), views[0])[::-1]}
     check = reg.cross_render_check(oc_renderers, views, T, [(0, 1)], intr, config, view_order=order)[0]
     at_near: list = []
     view_nccs(views[0], oc_renderers[1], T_01, near[:n], intr, config, depths=at_near)
@@ -105,6 +112,30 @@ def test_nearest_views_orders_by_the_mapped_centres_and_skips_dropped_views(tmp_
     other = ViewSet("b", tmp_path, posed([[10, 0, 0]]), ["hemisphere"], np.ones(1), np.ones(1, bool))
     # mapped by a scale of 2: centres at 0, 10, 2, 4; view 2 was dropped
     assert nearest_views(mine, sim3.make_sim3(np.eye(3), np.zeros(3), 2.0), other) == [1, 3, 0]
+
+
+def test_depth_views_are_training_views_nearest_the_other_nerfs_training_views(tmp_path):
+    def posed(xs):
+        c2w = np.tile(np.eye(4), (len(xs), 1, 1))
+        c2w[:, 0, 3] = xs
+        return c2w
+
+    sources = ["hemisphere", "hemisphere", "training", "training", "training"]
+    mine = ViewSet("a", tmp_path, posed([9.0, 10.0, 0.0, 4.0, 6.0]), sources, np.ones(5),
+                   np.array([True, True, True, True, False]))  # fmt: skip
+    other = ViewSet("b", tmp_path, posed([10.0, 3.0]), ["hemisphere", "training"], np.ones(2), np.ones(2, bool))
+    identity = np.eye(4)
+    # every view, nearest any of the other's views: the hemisphere views by its hemisphere view come first
+    assert nearest_views(mine, identity, other) == [1, 0, 3, 2]
+    # the depth's: own training views only (view 4 dropped), nearest the other's training view at x=3
+    assert depth_views(mine, identity, other) == [3, 2]
+    # a side without training views falls back to all its views
+    hemisphere_only = dataclasses.replace(other, sources=["hemisphere", "hemisphere"])
+    assert depth_views(mine, identity, hemisphere_only) == [3, 2]  # by x=3: 4 (1 away), then 0 (3 away)
+    # ... and the other side still measures to its training views
+    assert depth_views(dataclasses.replace(mine, sources=["hemisphere"] * 5), identity, other) == [3, 2, 0, 1]
+    # sources not recorded (an old render folder): every view
+    assert depth_views(dataclasses.replace(mine, sources=[]), identity, other) == [3, 2, 0, 1]
 
 
 def test_depth_log_ratio_is_the_links_scale_error():
