@@ -22,6 +22,7 @@ import json
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import tyro
@@ -38,12 +39,16 @@ from nerfuser_ns.renderers import NerfstudioRenderer
 
 @dataclass
 class DepthCheckViews:
-    """The depth check's log ratio and the NCC of a case's link and its truth at two choices of views."""
+    """The depth check's log ratio and the NCC of a case's link and its truth at choices of views."""
 
     cases: list[str]
     """``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (the case folder, the registration file in it)."""
     report: Path
     """Markdown report (a JSON of the rows beside it)."""
+    choices: list[Literal["spread", "nearest", "training"]] = field(
+        default_factory=lambda: ["spread", "nearest", "training"]
+    )
+    """View choices to measure."""
     scale_errors: list[float] = field(default_factory=list)
     """Also check the truth with NeRF 1 scaled by ``exp(e)`` about its origin, for each ``e`` (log scale)."""
 
@@ -80,7 +85,10 @@ def scaled(T: np.ndarray, log_scale: float) -> np.ndarray:
     return sim3.make_sim3(np.eye(3), c - s * c, s) @ T
 
 
-def measure(spec: str, scale_errors: list[float], console: Console) -> tuple[list[Row], dict]:
+Choice = Literal["spread", "nearest", "training"]
+
+
+def measure(spec: str, choices: list[Choice], scale_errors: list[float], console: Console) -> tuple[list[Row], dict]:
     case, case_dir, registration_path = case_registration(spec)
     reg = read_registration(registration_path)
     layout = case_layout(case)
@@ -109,7 +117,8 @@ def measure(spec: str, scale_errors: list[float], console: Console) -> tuple[lis
             "nearest": [nearest_views(views[0], T_01, views[1]), nearest_views(views[1], T_10, views[0])],
             "training": [depth_views(views[0], T_01, views[1]), depth_views(views[1], T_10, views[0])],
         }
-        for choice, (o0, o1) in orders.items():
+        for choice in choices:
+            o0, o1 = orders[choice]
             n01, d01 = direction(views[0], renderers[1], T_01, o0, intr, cfg)
             n10, d10 = direction(views[1], renderers[0], T_10, o1, intr, cfg)
             row = Row(
@@ -134,7 +143,7 @@ def main(cfg: DepthCheckViews) -> None:
     console = Console()
     rows, recorded = [], []
     for spec in cfg.cases:
-        r, rec = measure(spec, cfg.scale_errors, console)
+        r, rec = measure(spec, cfg.choices, cfg.scale_errors, console)
         rows += r
         recorded.append(rec)
     lines = [
