@@ -36,6 +36,9 @@ from nerfuser_ns.registration.render_cache import ViewSet, load_render_intrinsic
 from nerfuser_ns.registration.self_check import depth_views, nearest_views, spread_views, view_nccs
 from nerfuser_ns.renderers import NerfstudioRenderer
 
+Choice = Literal["spread", "nearest", "training"]
+"""Where the depth is compared: views evenly spread, nearest the other NeRF's, or nearest among training views."""
+
 
 @dataclass
 class DepthCheckViews:
@@ -45,9 +48,7 @@ class DepthCheckViews:
     """``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (the case folder, the registration file in it)."""
     report: Path
     """Markdown report (a JSON of the rows beside it)."""
-    choices: list[Literal["spread", "nearest", "training"]] = field(
-        default_factory=lambda: ["spread", "nearest", "training"]
-    )
+    choices: list[Choice] = field(default_factory=lambda: ["spread", "nearest", "training"])
     """View choices to measure."""
     scale_errors: list[float] = field(default_factory=list)
     """Also check the truth with NeRF 1 scaled by ``exp(e)`` about its origin, for each ``e`` (log scale)."""
@@ -83,9 +84,6 @@ def scaled(T: np.ndarray, log_scale: float) -> np.ndarray:
     """``T`` (a NeRF -> reference SIM(3)) with its scale off by ``log_scale`` about the NeRF's origin."""
     c, s = T[:3, 3], float(np.exp(log_scale))
     return sim3.make_sim3(np.eye(3), c - s * c, s) @ T
-
-
-Choice = Literal["spread", "nearest", "training"]
 
 
 def measure(spec: str, choices: list[Choice], scale_errors: list[float], console: Console) -> tuple[list[Row], dict]:

@@ -7,8 +7,7 @@ both give depth, j's depth there with i's own (:func:`depth_log_ratio`: a link w
 sees, puts j's surfaces nearer or farther than i's). The depth is compared at i's views nearest j's views under the
 solution (:func:`depth_views`: among training views where the renders hold any), not at the views sharing the most SfM
 points that the NCC uses: those are the content the link was fitted to, where a link wrong elsewhere still agrees.
-Before
-it, and before the direct alignment's renders, each NeRF's SfM cameras are checked against its transform
+Before it, and before the direct alignment's renders, each NeRF's SfM cameras are checked against its transform
 (:func:`camera_failure`), and the SfM's other models that link the same NeRFs against the registration's link
 (:func:`model_failure`); the cameras again against the final transform.
 """
