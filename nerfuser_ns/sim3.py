@@ -524,6 +524,13 @@ def relative_sim3(
     return invert_sim3(T_AC) @ to_homogeneous(T_BC)
 
 
+def rescaled_about_origin(T: Float[np.ndarray, "4 4"], log_scale: float) -> Float[np.ndarray, "4 4"]:
+    """``T`` (a NeRF -> common frame SIM(3)) with its scale off by ``log_scale``, about the NeRF's origin (which stays
+    where ``T`` puts it): a link wrong in scale alone, as the registration's checks must see it."""
+    c, s = T[:3, 3], float(np.exp(log_scale))
+    return make_sim3(np.eye(3), c - s * c, s) @ to_homogeneous(T)
+
+
 def to_reference_frame(T_to_C: Float[np.ndarray, "k 4 4"], ref: int = 0) -> Float[np.ndarray, "k 4 4"]:
     """Re-express every NeRF's ``T_i->C`` as ``T_i->ref = T_ref->C^-1 @ T_i->C`` (entry ``ref`` becomes identity)."""
     T_to_C = to_homogeneous(T_to_C)

@@ -125,9 +125,7 @@ def perturb(T: np.ndarray, kind: str, size: float, rng: np.random.Generator) -> 
     elif kind == "translation":
         D = sim3.make_sim3(np.eye(3), size * axis, 1.0)
     else:
-        c = T[:3, 3]
-        s = float(np.exp(size))
-        D = sim3.make_sim3(np.eye(3), c - s * c, s)
+        return sim3.rescaled_about_origin(T, size)
     return D @ T
 
 

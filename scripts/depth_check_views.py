@@ -80,12 +80,6 @@ def direction(src: ViewSet, dst, T: np.ndarray, order: list[int], intr, cfg: Reg
     return _median(scores), _median(depths)
 
 
-def scaled(T: np.ndarray, log_scale: float) -> np.ndarray:
-    """``T`` (a NeRF -> reference SIM(3)) with its scale off by ``log_scale`` about the NeRF's origin."""
-    c, s = T[:3, 3], float(np.exp(log_scale))
-    return sim3.make_sim3(np.eye(3), c - s * c, s) @ T
-
-
 def measure(spec: str, choices: list[Choice], scale_errors: list[float], console: Console) -> tuple[list[Row], dict]:
     case, case_dir, registration_path = case_registration(spec)
     reg = read_registration(registration_path)
@@ -102,7 +96,7 @@ def measure(spec: str, choices: list[Choice], scale_errors: list[float], console
         "truth": truth,
     }
     for e in scale_errors:
-        links[f"truth, scale {e:+g}"] = np.stack([truth[0], scaled(truth[1], e)])
+        links[f"truth, scale {e:+g}"] = np.stack([truth[0], sim3.rescaled_about_origin(truth[1], e)])
     cfg = RegistrationConfig(colour_views=0)
     rows = []
     for label, T in links.items():

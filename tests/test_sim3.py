@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from nerfuser_ns import sim3
 from nerfuser_ns.sampling import sample_hemisphere_poses
 from nerfuser_ns.sim3 import (
     Sim3Errors,
@@ -504,3 +505,14 @@ def test_estimator_bad_inputs():
         estimate_sim3_umeyama(G[:2], G[:2])
     with pytest.raises(ValueError, match="out of range"):
         to_reference_frame(np.stack([np.eye(4)] * 2), ref=2)
+
+
+@pytest.mark.parametrize("log_scale", [0.1, -0.1, 0.02])
+def test_rescaled_about_origin_is_off_by_that_log_scale_and_keeps_the_origin(log_scale):
+    rng = np.random.default_rng(3)
+    T = sim3.make_sim3(sim3.so3_exp(rng.normal(size=3)), rng.normal(size=3), 1.7)
+    moved = sim3.rescaled_about_origin(T, log_scale)
+    e = sim3.sim3_errors(moved, T)
+    assert (float(e.r_err_deg), float(e.s_err)) == pytest.approx((0.0, abs(log_scale)), abs=1e-9)
+    assert float(sim3.decompose_sim3(moved)[2]) == pytest.approx(1.7 * np.exp(log_scale))
+    assert np.allclose(sim3.transform_points(moved, np.zeros((1, 3))), T[:3, 3])  # the origin stays
