@@ -421,6 +421,42 @@ MODEL_CHECK_MIN_VIEWS = 4
 check was first measured)."""
 
 
+@dataclass
+class ModelLinks:
+    """What one other SfM model says: each NeRF's SIM(3) into that model's frame, where it holds enough of its views."""
+
+    num_views: int
+    """Views the model registered (of every NeRF)."""
+    views_per_nerf: list[int]
+    """Per NeRF: its kept views the model registered."""
+    T_to_model: dict[int, Float[np.ndarray, "4 4"]]
+    """Per NeRF index with at least :data:`MODEL_CHECK_MIN_VIEWS` (and ``min_registered_views``) kept views in the
+    model and a non-degenerate estimate: ``T_nerf->model``."""
+
+
+def model_links(
+    views: Sequence[ViewSet], sfm: SfMResult, config: RegistrationConfig,
+    models: Sequence[dict[str, np.ndarray]] | None = None,
+) -> list[ModelLinks]:
+    """Per other SfM model (largest first): the NeRFs it links on its own, each by ``config.estimator`` as the largest
+    model's are. ``models``: the other models' poses (default: read from the SfM folder,
+    :func:`~nerfuser_ns.registration.sfm.other_models`)."""
+    models = other_models(sfm) if models is None else models
+    out = []
+    for poses in models:
+        counts = [sum(kept and n in poses for n, kept in zip(vs.image_names, vs.kept, strict=True)) for vs in views]
+        linked = {}
+        for i, vs in enumerate(views):
+            if counts[i] < max(MODEL_CHECK_MIN_VIEWS, config.min_registered_views):
+                continue
+            try:
+                linked[i] = estimate_transform(vs, replace(sfm, c2w=poses), config).estimate.T
+            except RegistrationError:  # a degenerate small model says nothing
+                continue
+        out.append(ModelLinks(len(poses), counts, linked))
+    return out
+
+
 def model_failure(
     views: Sequence[ViewSet],
     sfm: SfMResult,
@@ -432,34 +468,25 @@ def model_failure(
     failure rule, translations in reference units), else None.
 
     The SfM splits views it cannot join; a smaller model that still holds :data:`MODEL_CHECK_MIN_VIEWS` views of two
-    NeRFs links them on its own. Views of one consistent overlap link them alike, so models that disagree mean the SfM
-    linked content that is not the same (measured: a drive pair whose three models linked the NeRFs 5.8, 14 and
-    23 deg from the truth, the largest passing the self-check at NCC 0.63 and the camera check). ``models``: the
-    other models' poses (default: read from the SfM folder, :func:`~nerfuser_ns.registration.sfm.other_models`).
+    NeRFs links them on its own (:func:`model_links`). Views of one consistent overlap link them alike, so models that
+    disagree mean the SfM linked content that is not the same (measured: a drive pair whose three models linked the
+    NeRFs 5.8, 14 and 23 deg from the truth, the largest passing the self-check at NCC 0.63 and the camera check).
+    ``models``: as :func:`model_links`'s.
     """
-    models = other_models(sfm) if models is None else models
     names = [v.name for v in views]
-    for poses in models:
-        linked = {}
-        for i, vs in enumerate(views):
-            if sum(1 for n, kept in zip(vs.image_names, vs.kept, strict=True) if kept and n in poses) < max(
-                MODEL_CHECK_MIN_VIEWS, config.min_registered_views
-            ):
-                continue
-            try:
-                linked[i] = estimate_transform(vs, replace(sfm, c2w=poses), config).estimate.T
-            except RegistrationError:  # a degenerate small model says nothing
-                continue
-        if len(linked) < 2:
+    for model in model_links(views, sfm, config, models):
+        if len(model.T_to_model) < 2:
             continue
-        a, *others = sorted(linked)
+        a, *others = sorted(model.T_to_model)
+        T_a = model.T_to_model[a]
         scale_a = float(sim3.decompose_sim3(T_to_ref[a])[2])
         for j in others:
-            e = sim3.sim3_errors(sim3.invert_sim3(linked[a]) @ linked[j], sim3.invert_sim3(T_to_ref[a]) @ T_to_ref[j])
+            e = sim3.sim3_errors(sim3.invert_sim3(T_a) @ model.T_to_model[j],
+                                 sim3.invert_sim3(T_to_ref[a]) @ T_to_ref[j])  # fmt: skip
             t_ref = float(e.t_err) * scale_a
             if sim3.is_failure(e.r_err_deg, t_ref, e.s_err):
                 return (
-                    f"{names[j]}: another SfM model ({len(poses)} views) links it to {names[a]} "
+                    f"{names[j]}: another SfM model ({model.num_views} views) links it to {names[a]} "
                     f"{float(e.r_err_deg):.1f} deg, {t_ref:.3f} reference units and {float(e.s_err):.3f} in log scale "
                     "away from the registration's link (the paper's failure rule: 5 deg, 0.2, 0.1): views the SfM "
                     f"could not join disagree, so it probably merged unrelated content; "

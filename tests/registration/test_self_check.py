@@ -304,7 +304,7 @@ def _posed(T: np.ndarray, c2w: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize(("offset_deg", "views_b", "fails"),
                          [(0.0, 8, False), (1.0, 8, False), (10.0, 8, True), (10.0, 3, False)])  # fmt: skip
 def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_path, offset_deg, views_b, fails):
-    from nerfuser_ns.registration.self_check import model_failure
+    from nerfuser_ns.registration.self_check import model_failure, model_links
 
     rng = np.random.default_rng(3)
     views = []
@@ -321,6 +321,12 @@ def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_pa
         for k in range(8 if i == 0 else views_b):
             poses[vs.image_names[k]] = G[k]
     sfm = reg.SfMResult({}, [], {}, 0, 0.0, 0, "exhaustive")
+    (links,) = model_links(views, sfm, reg.RegistrationConfig(), [poses])
+    assert links.num_views == 8 + views_b and links.views_per_nerf == [8, views_b]
+    assert sorted(links.T_to_model) == ([0, 1] if views_b >= 4 else [0])  # 3 views of b: too few to link it
+    if offset_deg == 0.0 and views_b >= 4:  # the same link as the registration's, in the model's own frame
+        relative = sim3.invert_sim3(links.T_to_model[0]) @ links.T_to_model[1]
+        np.testing.assert_allclose(relative, T_to_ref[1], atol=1e-6)
     message = model_failure(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[poses])
     assert (message is not None) == fails
     if fails:

@@ -1,0 +1,221 @@
+"""The model check's refusals judged against the truth: every pose source of a practitioner case that the model check
+refused (``sampling_choice.tried_before`` of its registration file), registered again from the same renders and SfM
+with ``--no-model-check``. Per refusal: the link the model check refused against the stored truth (was it a failure by
+the paper's rule?), what the remaining checks (the cameras, the cross-render NCC and depth) said of it, and each of the
+SfM's models' own link against the truth::
+
+    python scripts/model_check_cases.py \\
+        --cases drive:21=outputs/practitioner/drive-21-checked street:21=outputs/practitioner/street-21-checked \\
+        --report reports/model_check_cases.md
+
+A case is ``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (a case folder of ``scripts/bench_practitioner.py``). The registrations
+again write ``registration_no_model_check_<source>_<mode>.json`` (or, refused, ``..._rejected.json`` and
+``..._failed.txt``) into the case folder and reuse its ``registration_work`` folder: a case's renders and SfM are not
+made again, only the direct alignment and the self-check run (minutes per refusal on a CPU).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import tyro
+from rich.console import Console
+
+from nerfuser_ns import sim3
+from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, case_registration, run_config
+from nerfuser_ns.files import write_text_atomic
+from nerfuser_ns.registration import RegistrationConfig, read_registration
+from nerfuser_ns.registration.render_cache import ViewSet
+from nerfuser_ns.registration.self_check import model_links
+from nerfuser_ns.registration.sfm import SfMResult, other_models
+
+BIN = Path(sys.executable).parent
+MODEL_CHECK = "another SfM model"
+"""How the model check's refusal begins after the NeRF's name (``self_check.model_failure``)."""
+
+
+@dataclass
+class ModelCheckCases:
+    """Register each model-check refusal of the cases again without the model check and judge both against the truth."""
+
+    cases: list[str]
+    """``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (the case folder, the registration file in it)."""
+    report: Path
+    """Markdown report (a JSON of the rows beside it)."""
+
+
+@dataclass
+class Row:
+    case: str
+    source: str
+    mode: str
+    refusal: str
+    """The model check's line, up to its suggestion."""
+    r_err_deg: float
+    t_err: float
+    s_err: float
+    link_failure: bool
+    """The refused link is a failure by the paper's rule (5 deg, 0.2, 0.1): the refusal was right."""
+    checks_without: str
+    """What the registration without the model check said: ``passed`` or its refusal line."""
+    self_check: dict | None
+    """The cross-render check's figures (NCC, depth) of the registration without the model check."""
+    models: list[dict]
+    """Per SfM model (the largest first): views per NeRF and its link against the truth (None where it links fewer
+    than two NeRFs)."""
+
+
+def model_check_refusals(record: dict) -> list[dict]:
+    """The pose sources the model check refused before the recorded one (each ``{"source", "mode", "error"}``)."""
+    tried = (record.get("sampling_choice") or {}).get("tried_before") or []
+    return [t for t in tried if f": {MODEL_CHECK} (" in t.get("error", "")]
+
+
+def verdict(link_failure: bool, refused: bool) -> str:
+    """A check's verdict on a link against the truth: right (refused a failure, passed a success) or wrong."""
+    if refused:
+        return "right (refused a failure)" if link_failure else "wrong (refused a success)"
+    return "wrong (passed a failure)" if link_failure else "right (passed a success)"
+
+
+def _register_again(layout, case_dir: Path, source: str, mode: str, console: Console) -> tuple[Path, str]:
+    """``ns-nerfuser-register`` on the case's runs with ``source``, ``mode`` and ``--no-model-check``: the record it
+    wrote (or refused) and ``passed`` or its refusal line."""
+    stem = case_dir / f"registration_no_model_check_{source}_{mode}"
+    output, rejected, failed = stem.with_suffix(".json"), Path(f"{stem}_rejected.json"), Path(f"{stem}_failed.txt")
+    if output.is_file():
+        return output, "passed"
+    if rejected.is_file() and failed.is_file():
+        return rejected, failed.read_text().strip()
+    work = case_dir / "registration_work"
+    configs = [str(run_config(case_dir, c.name)) for c in layout.captures]
+    cmd = [str(BIN / "ns-nerfuser-register"), "--configs", *configs, "--output", str(output), "--work-dir", str(work),
+           "--sampling.source", source, "--mode", mode, "--no-model-check"]  # fmt: skip
+    console.print(f"[dim]$ {' '.join(cmd)}[/]")
+    started = time.time()
+    log = Path(f"{stem}.log")
+    with open(log, "w") as f:
+        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    if proc.returncode == 0:
+        return output, "passed"
+    in_work = work / "rejected_registration.json"
+    if not (in_work.is_file() and in_work.stat().st_mtime >= started):
+        raise SystemExit(f"{log}: ns-nerfuser-register failed without a refused solution (exit {proc.returncode})")
+    shutil.copyfile(in_work, rejected)
+    lines = [ln.strip() for ln in log.read_text(errors="replace").splitlines() if ln.strip()]
+    write_text_atomic(failed, (lines[-1] if lines else f"exit {proc.returncode}") + "\n")
+    return rejected, failed.read_text().strip()
+
+
+def _sfm_of(case_dir: Path, record: dict) -> SfMResult:
+    """The SfM the record's renders went into (the work folder's SfM whose images are the record's render folders)."""
+    folders = {Path(n["render_folder"]).name for n in record["nerfs"]}
+    for result in sorted((case_dir / "registration_work" / "sfm").glob("*/result.json")):
+        data = json.loads(result.read_text())
+        if {name.split("/")[0] for name in data["c2w"]} == folders:
+            return SfMResult(**{k: v for k, v in data.items() if k in SfMResult.__dataclass_fields__})
+    raise SystemExit(f"{case_dir / 'registration_work' / 'sfm'}: no SfM over the render folders {sorted(folders)}")
+
+
+def _models(views: list[ViewSet], sfm: SfMResult, truth: np.ndarray, ref: int) -> list[dict]:
+    """Every SfM model's link against the truth, the largest (the registration's, before its refinement) first."""
+    cfg = RegistrationConfig()
+    largest = {n: np.asarray(c, dtype=np.float64) for n, c in sfm.c2w.items()}
+    out = []
+    for m, links in enumerate(model_links(views, sfm, cfg, [largest, *other_models(sfm)])):
+        row: dict = {"model": m, "views": links.num_views, "views_per_nerf": links.views_per_nerf, "link": None}
+        if ref in links.T_to_model and len(links.T_to_model) >= 2:
+            T = {i: sim3.invert_sim3(links.T_to_model[ref]) @ T_i for i, T_i in links.T_to_model.items() if i != ref}
+            row["link"] = {views[i].name: _errors(T_i, truth[i]) for i, T_i in T.items()}
+        out.append(row)
+    return out
+
+
+def _errors(T: np.ndarray, T_true: np.ndarray) -> dict:
+    e = sim3.sim3_errors(T, T_true)
+    return {"r_err_deg": float(e.r_err_deg), "t_err": float(e.t_err), "s_err": float(e.s_err),
+            "failure": bool(e.is_failure())}  # fmt: skip
+
+
+def measure(spec: str, console: Console) -> list[Row]:
+    case, case_dir, registration_path = case_registration(spec)
+    layout = case_layout(case)
+    record = read_registration(registration_path)
+    truth = sim3.to_reference_frame(
+        np.stack([g["nerf_to_world"] for g in capture_ground_truth(layout, case_dir, optimized=False)])
+    )
+    rows = []
+    for refusal in model_check_refusals(record):
+        path, said = _register_again(layout, case_dir, refusal["source"], refusal["mode"], console)
+        again = read_registration(path)
+        ref = again["reference"]["index"]
+        T = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in again["nerfs"]])
+        others = [i for i in range(len(T)) if i != ref]
+        errs = [_errors(T[i], truth[i]) for i in others]
+        worst = max(errs, key=lambda e: e["r_err_deg"])
+        views = [ViewSet.from_folder(n["render_folder"], name=n["name"]) for n in again["nerfs"]]
+        rows.append(Row(
+            f"{case} ({case_dir.name})", refusal["source"], refusal["mode"], refusal["error"].split("; ")[0],
+            worst["r_err_deg"], worst["t_err"], worst["s_err"], any(e["failure"] for e in errs), said,
+            (again.get("pairs") or [{}])[0].get("self_check"), _models(views, _sfm_of(case_dir, again), truth, ref),
+        ))  # fmt: skip
+        console.print(rows[-1])
+    if not rows:
+        console.print(f"[yellow]{registration_path}: no pose source was refused by the model check[/]")
+    return rows
+
+
+def _models_cell(models: list[dict]) -> str:
+    cells = []
+    for m in models:
+        if m["link"] is None:
+            cells.append(f"{m['views_per_nerf']}: links < 2 NeRFs")
+            continue
+        e = max(m["link"].values(), key=lambda x: x["r_err_deg"])
+        cells.append(f"{m['views_per_nerf']}: {e['r_err_deg']:.2f} deg, s {e['s_err']:.3f}")
+    return "; ".join(cells)
+
+
+def main(cfg: ModelCheckCases) -> None:
+    console = Console()
+    rows = [r for spec in cfg.cases for r in measure(spec, console)]
+    lines = [
+        "# The model check's refusals against the truth",
+        "",
+        f"`python scripts/model_check_cases.py {' '.join(sys.argv[1:])}`",
+        "",
+        "Each pose source the model check refused, registered again from the same renders and SfM with "
+        "`--no-model-check`: the link (against the stored truth; the paper's rule 5 deg, 0.2, 0.1), the model "
+        "check's verdict on it, what the remaining checks said, and each SfM model's own link (the largest first, "
+        "before the refinement).",
+        "",
+        "| case | source | link r / t / s | model check | the other checks | their verdict | NCC | depth | "
+        "SfM models' links |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        sc = r.self_check or {}
+        ncc = f"{sc['ncc']:.2f}" if sc.get("ncc") is not None else "-"
+        depth = (f"{sc['depth_i_in_j']:+.3f} / {sc['depth_j_in_i']:+.3f}"
+                 if sc.get("depth_i_in_j") is not None else "-")  # fmt: skip
+        passed = r.checks_without == "passed"
+        lines.append(
+            f"| {r.case} | {r.source} ({r.mode}) | {r.r_err_deg:.2f} deg / {r.t_err:.3f} / {r.s_err:.3f} | "
+            f"{verdict(r.link_failure, True)} | {'passed' if passed else r.checks_without[:160]} | "
+            f"{verdict(r.link_failure, not passed)} | {ncc} | {depth} | {_models_cell(r.models)} |"
+        )
+    write_text_atomic(cfg.report.with_suffix(".json"), json.dumps([asdict(r) for r in rows], indent=1) + "\n")
+    write_text_atomic(cfg.report, "\n".join(lines) + "\n")
+    console.print(f"wrote {cfg.report}")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(ModelCheckCases))
