@@ -8,7 +8,8 @@ SfM's models' own link against the truth::
         --cases drive:21=outputs/practitioner/drive-21-checked street:21=outputs/practitioner/street-21-checked \\
         --report reports/model_check_cases.md
 
-A case is ``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (a case folder of ``scripts/bench_practitioner.py``). The registrations
+A case is ``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (a case folder of ``scripts/bench_practitioner.py``; the registration
+file may be a refused one, e.g. ``registration_rejected.json``). The registrations
 again write ``registration_no_model_check_<source>_<mode>.json`` (or, refused, ``..._rejected.json`` and
 ``..._failed.txt``) into the case folder and reuse its ``registration_work`` folder: a case's renders and SfM are not
 made again, only the direct alignment and the self-check run (minutes per refusal on a CPU).
@@ -74,9 +75,16 @@ class Row:
 
 
 def model_check_refusals(record: dict) -> list[dict]:
-    """The pose sources the model check refused before the recorded one (each ``{"source", "mode", "error"}``)."""
+    """The pose sources the model check refused (each ``{"source", "mode", "error"}``): those tried before the
+    recorded one, and the record's own when it is a solution the model check refused (``rejected_registration.json``
+    of a registration run with one pose source)."""
     tried = (record.get("sampling_choice") or {}).get("tried_before") or []
-    return [t for t in tried if f": {MODEL_CHECK} (" in t.get("error", "")]
+    out = [t for t in tried if f": {MODEL_CHECK} (" in t.get("error", "")]
+    refused = record.get("refused", "")
+    if refused.partition(": ")[2].startswith(f"{MODEL_CHECK} ("):
+        settings = record["settings"]
+        out.append({"source": settings["sampling"]["source"], "mode": settings["mode"], "error": refused})
+    return out
 
 
 def verdict(link_failure: bool, refused: bool) -> str:

@@ -25,6 +25,12 @@ def test_only_the_model_checks_refusals_are_registered_again(script):
     assert [t["source"] for t in script.model_check_refusals(record)] == ["training"]
     assert script.model_check_refusals({"sampling_choice": {"tried_before": []}}) == []
     assert script.model_check_refusals({}) == []  # registered with an explicit source: nothing was tried before
+    settings = {"sampling": {"source": "training"}, "mode": "sfm"}
+    refused = script.model_check_refusals({"refused": model, "settings": settings})  # refused with one pose source
+    assert refused == [{"source": "training", "mode": "sfm", "error": model}]
+    auto = f"no pose source registered the runs, 4 tried: training (sfm): {model}"  # its attempts are tried_before's
+    assert script.model_check_refusals({"refused": auto, "settings": settings}) == []
+    assert script.model_check_refusals({"refused": camera, "settings": settings}) == []
 
 
 @pytest.mark.parametrize(
