@@ -1,18 +1,18 @@
-"""The model check's refusals judged against the truth: every pose source of a practitioner case that the model check
-refused (``sampling_choice.tried_before`` of its registration file), registered again from the same renders and SfM
-with ``--no-model-check``. Per refusal: the link the model check refused against the stored truth (was it a failure by
-the paper's rule?), what the remaining checks (the cameras, the cross-render NCC and depth) said of it, and each of the
-SfM's models' own link against the truth::
+"""The render-free checks' refusals judged against the truth: every pose source of a practitioner case that the camera
+check or the model check refused (``sampling_choice.tried_before`` of its registration file), registered again from
+the same renders and SfM without that check. Per refusal: the refused link against the stored truth (was it a failure
+by the paper's rule, so the refusal right?), what the remaining checks (the other render-free check, the cross-render
+NCC and depth) said of it, and each of the SfM's models' own link against the truth::
 
-    python scripts/model_check_cases.py \\
+    python scripts/check_refusals.py \\
         --cases drive:21=outputs/practitioner/drive-21-checked street:21=outputs/practitioner/street-21-checked \\
-        --report reports/model_check_cases.md
+        --report reports/check_refusals.md
 
 A case is ``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (a case folder of ``scripts/bench_practitioner.py``; the registration
-file may be a refused one, e.g. ``registration_rejected.json``). The registrations
-again write ``registration_no_model_check_<source>_<mode>.json`` (or, refused, ``..._rejected.json`` and
-``..._failed.txt``) into the case folder and reuse its ``registration_work`` folder: a case's renders and SfM are not
-made again, only the direct alignment and the self-check run (minutes per refusal on a CPU).
+file may be a refused one, e.g. ``registration_rejected.json``). The registrations again write
+``registration_no_<check>_check_<source>_<mode>.json`` (or, refused, ``..._rejected.json``, whose ``refused`` says why)
+into the case folder and reuse its ``registration_work`` folder: a case's renders and SfM are not made again, only
+the direct alignment and the self-check run (minutes per refusal on a CPU).
 """
 
 from __future__ import annotations
@@ -39,13 +39,14 @@ from nerfuser_ns.registration.self_check import model_links
 from nerfuser_ns.registration.sfm import SfMResult, other_models
 
 BIN = Path(sys.executable).parent
-MODEL_CHECK = "another SfM model"
-"""How the model check's refusal begins after the NeRF's name (``self_check.model_failure``)."""
+CHECKS = {"camera": ": its SfM cameras disagree with its registered transform", "model": ": another SfM model ("}
+"""Per render-free check: how its refusal begins after the NeRF's name (``self_check.camera_failure``,
+``self_check.model_failure``); ``--no-<check>-check`` turns it off."""
 
 
 @dataclass
-class ModelCheckCases:
-    """Register each model-check refusal of the cases again without the model check and judge both against the truth."""
+class CheckRefusals:
+    """Register each camera- or model-check refusal of the cases again without that check; judge both by the truth."""
 
     cases: list[str]
     """``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (the case folder, the registration file in it)."""
@@ -56,34 +57,41 @@ class ModelCheckCases:
 @dataclass
 class Row:
     case: str
+    check: str
+    """The check that refused (a key of :data:`CHECKS`)."""
     source: str
     mode: str
     refusal: str
-    """The model check's line, up to its suggestion."""
+    """The check's line, up to its suggestion."""
     r_err_deg: float
     t_err: float
     s_err: float
     link_failure: bool
     """The refused link is a failure by the paper's rule (5 deg, 0.2, 0.1): the refusal was right."""
     checks_without: str
-    """What the registration without the model check said: ``passed`` or its refusal line."""
+    """What the registration without that check said: ``passed`` or its refusal line."""
     self_check: dict | None
-    """The cross-render check's figures (NCC, depth) of the registration without the model check."""
+    """The cross-render check's figures (NCC, depth) of the registration without that check."""
     models: list[dict]
     """Per SfM model (the largest first): views per NeRF and its link against the truth (None where it links fewer
     than two NeRFs)."""
 
 
-def model_check_refusals(record: dict) -> list[dict]:
-    """The pose sources the model check refused (each ``{"source", "mode", "error"}``): those tried before the
-    recorded one, and the record's own when it is a solution the model check refused (``rejected_registration.json``
-    of a registration run with one pose source)."""
-    tried = (record.get("sampling_choice") or {}).get("tried_before") or []
-    out = [t for t in tried if f": {MODEL_CHECK} (" in t.get("error", "")]
+def refusals(record: dict) -> list[dict]:
+    """The pose sources a render-free check refused (each ``{"check", "source", "mode", "error"}``): those tried
+    before the recorded one, and the record's own when it is a solution such a check refused
+    (``rejected_registration.json`` of a registration run with one pose source)."""
+    tried = [dict(t) for t in (record.get("sampling_choice") or {}).get("tried_before") or []]
     refused = record.get("refused", "")
-    if refused.partition(": ")[2].startswith(f"{MODEL_CHECK} ("):
+    if refused:
         settings = record["settings"]
-        out.append({"source": settings["sampling"]["source"], "mode": settings["mode"], "error": refused})
+        tried.append({"source": settings["sampling"]["source"], "mode": settings["mode"], "error": refused})
+    out = []
+    for t in tried:
+        # the check's line follows the NeRF's name; an automatic choice's summary line names its attempts later on
+        check = next((c for c, start in CHECKS.items() if t["error"].partition(":")[2].startswith(start[1:])), None)
+        if check is not None:
+            out.append({"check": check, **{k: t[k] for k in ("source", "mode", "error")}})
     return out
 
 
@@ -94,19 +102,20 @@ def verdict(link_failure: bool, refused: bool) -> str:
     return "wrong (passed a failure)" if link_failure else "right (passed a success)"
 
 
-def _register_again(layout, case_dir: Path, source: str, mode: str, console: Console) -> tuple[Path, str]:
-    """``ns-nerfuser-register`` on the case's runs with ``source``, ``mode`` and ``--no-model-check``: the record it
+def _register_again(layout, case_dir: Path, refusal: dict, console: Console) -> tuple[Path, str]:
+    """``ns-nerfuser-register`` on the case's runs with the refusal's source and mode, its check off: the record it
     wrote (or refused) and ``passed`` or its refusal line."""
-    stem = case_dir / f"registration_no_model_check_{source}_{mode}"
-    output, rejected, failed = stem.with_suffix(".json"), Path(f"{stem}_rejected.json"), Path(f"{stem}_failed.txt")
+    check, source, mode = refusal["check"], refusal["source"], refusal["mode"]
+    stem = case_dir / f"registration_no_{check}_check_{source}_{mode}"
+    output, rejected = stem.with_suffix(".json"), Path(f"{stem}_rejected.json")
     if output.is_file():
         return output, "passed"
-    if rejected.is_file() and failed.is_file():
-        return rejected, failed.read_text().strip()
+    if rejected.is_file():
+        return rejected, read_registration(rejected)["refused"]
     work = case_dir / "registration_work"
     configs = [str(run_config(case_dir, c.name)) for c in layout.captures]
     cmd = [str(BIN / "ns-nerfuser-register"), "--configs", *configs, "--output", str(output), "--work-dir", str(work),
-           "--sampling.source", source, "--mode", mode, "--no-model-check"]  # fmt: skip
+           "--sampling.source", source, "--mode", mode, f"--no-{check}-check"]  # fmt: skip
     console.print(f"[dim]$ {' '.join(cmd)}[/]")
     started = time.time()
     log = Path(f"{stem}.log")
@@ -118,9 +127,7 @@ def _register_again(layout, case_dir: Path, source: str, mode: str, console: Con
     if not (in_work.is_file() and in_work.stat().st_mtime >= started):
         raise SystemExit(f"{log}: ns-nerfuser-register failed without a refused solution (exit {proc.returncode})")
     shutil.copyfile(in_work, rejected)
-    lines = [ln.strip() for ln in log.read_text(errors="replace").splitlines() if ln.strip()]
-    write_text_atomic(failed, (lines[-1] if lines else f"exit {proc.returncode}") + "\n")
-    return rejected, failed.read_text().strip()
+    return rejected, read_registration(rejected)["refused"]
 
 
 def _sfm_of(case_dir: Path, record: dict) -> SfMResult:
@@ -161,8 +168,8 @@ def measure(spec: str, console: Console) -> list[Row]:
         np.stack([g["nerf_to_world"] for g in capture_ground_truth(layout, case_dir, optimized=False)])
     )
     rows = []
-    for refusal in model_check_refusals(record):
-        path, said = _register_again(layout, case_dir, refusal["source"], refusal["mode"], console)
+    for refusal in refusals(record):
+        path, said = _register_again(layout, case_dir, refusal, console)
         again = read_registration(path)
         ref = again["reference"]["index"]
         T = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in again["nerfs"]])
@@ -171,13 +178,14 @@ def measure(spec: str, console: Console) -> list[Row]:
         worst = max(errs, key=lambda e: e["r_err_deg"])
         views = [ViewSet.from_folder(n["render_folder"], name=n["name"]) for n in again["nerfs"]]
         rows.append(Row(
-            f"{case} ({case_dir.name})", refusal["source"], refusal["mode"], refusal["error"].split("; ")[0],
+            f"{case} ({case_dir.name})", refusal["check"], refusal["source"], refusal["mode"],
+            refusal["error"].split("; ")[0],
             worst["r_err_deg"], worst["t_err"], worst["s_err"], any(e["failure"] for e in errs), said,
             (again.get("pairs") or [{}])[0].get("self_check"), _models(views, _sfm_of(case_dir, again), truth, ref),
         ))  # fmt: skip
         console.print(rows[-1])
     if not rows:
-        console.print(f"[yellow]{registration_path}: no pose source was refused by the model check[/]")
+        console.print(f"[yellow]{registration_path}: no pose source was refused by the camera or model check[/]")
     return rows
 
 
@@ -192,22 +200,22 @@ def _models_cell(models: list[dict]) -> str:
     return "; ".join(cells)
 
 
-def main(cfg: ModelCheckCases) -> None:
+def main(cfg: CheckRefusals) -> None:
     console = Console()
     rows = [r for spec in cfg.cases for r in measure(spec, console)]
     lines = [
-        "# The model check's refusals against the truth",
+        "# The render-free checks' refusals against the truth",
         "",
-        f"`python scripts/model_check_cases.py {' '.join(sys.argv[1:])}`",
+        f"`python scripts/check_refusals.py {' '.join(sys.argv[1:])}`",
         "",
-        "Each pose source the model check refused, registered again from the same renders and SfM with "
-        "`--no-model-check`: the link (against the stored truth; the paper's rule 5 deg, 0.2, 0.1), the model "
-        "check's verdict on it, what the remaining checks said, and each SfM model's own link (the largest first, "
-        "before the refinement).",
+        "Each pose source the camera or the model check refused, registered again from the same renders and SfM "
+        "without that check: the link (against the stored truth; the paper's rule 5 deg, 0.2, 0.1), the check's "
+        "verdict on it, what the remaining checks said, and each SfM model's own link (views per NeRF; the largest "
+        "first, before the refinement).",
         "",
-        "| case | source | link r / t / s | model check | the other checks | their verdict | NCC | depth | "
-        "SfM models' links |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| case | refused by | source | link r / t / s | its verdict | the other checks | their verdict | NCC | "
+        "depth | SfM models' links |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         sc = r.self_check or {}
@@ -216,7 +224,8 @@ def main(cfg: ModelCheckCases) -> None:
                  if sc.get("depth_i_in_j") is not None else "-")  # fmt: skip
         passed = r.checks_without == "passed"
         lines.append(
-            f"| {r.case} | {r.source} ({r.mode}) | {r.r_err_deg:.2f} deg / {r.t_err:.3f} / {r.s_err:.3f} | "
+            f"| {r.case} | {r.check} check | {r.source} ({r.mode}) | {r.r_err_deg:.2f} deg / {r.t_err:.3f} / "
+            f"{r.s_err:.3f} | "
             f"{verdict(r.link_failure, True)} | {'passed' if passed else r.checks_without[:160]} | "
             f"{verdict(r.link_failure, not passed)} | {ncc} | {depth} | {_models_cell(r.models)} |"
         )
@@ -226,4 +235,4 @@ def main(cfg: ModelCheckCases) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(ModelCheckCases))
+    main(tyro.cli(CheckRefusals))
