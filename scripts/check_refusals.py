@@ -72,6 +72,9 @@ class Row:
     """What the registration without that check said: ``passed`` or its refusal line."""
     self_check: dict | None
     """The cross-render check's figures (NCC, depth) of the registration without that check."""
+    self_check_alone: str | None
+    """Where the other render-free check refused it too: what the registration without either said (``passed`` or
+    its refusal line), else None."""
     models: list[dict]
     """Per SfM model (the largest first): views per NeRF and its link against the truth (None where it links fewer
     than two NeRFs)."""
@@ -88,9 +91,7 @@ def refusals(record: dict) -> list[dict]:
         tried.append({"source": settings["sampling"]["source"], "mode": settings["mode"], "error": refused})
     out = []
     for t in tried:
-        # the check's line follows the NeRF's name; an automatic choice's summary line names its attempts later on
-        check = next((c for c, start in CHECKS.items() if t["error"].partition(":")[2].startswith(start[1:])), None)
-        if check is not None:
+        if (check := refused_by(t["error"])) is not None:
             out.append({"check": check, **{k: t[k] for k in ("source", "mode", "error")}})
     return out
 
@@ -102,11 +103,19 @@ def verdict(link_failure: bool, refused: bool) -> str:
     return "wrong (passed a failure)" if link_failure else "right (passed a success)"
 
 
-def _register_again(layout, case_dir: Path, refusal: dict, console: Console) -> tuple[Path, str]:
-    """``ns-nerfuser-register`` on the case's runs with the refusal's source and mode, its check off: the record it
-    wrote (or refused) and ``passed`` or its refusal line."""
-    check, source, mode = refusal["check"], refusal["source"], refusal["mode"]
-    stem = case_dir / f"registration_no_{check}_check_{source}_{mode}"
+def refused_by(line: str) -> str | None:
+    """The render-free check (a key of :data:`CHECKS`) whose refusal ``line`` is, else None: the check's line follows
+    the NeRF's name (an automatic choice's summary line names its attempts' checks later on)."""
+    return next((c for c, start in CHECKS.items() if line.partition(":")[2].startswith(start[1:])), None)
+
+
+def _register_again(
+    layout, case_dir: Path, refusal: dict, checks_off: list[str], console: Console
+) -> tuple[Path, str]:
+    """``ns-nerfuser-register`` on the case's runs with the refusal's source and mode, ``checks_off`` off: the record
+    it wrote (or refused) and ``passed`` or its refusal line."""
+    source, mode = refusal["source"], refusal["mode"]
+    stem = case_dir / f"registration_no_{'_'.join(sorted(checks_off))}_check_{source}_{mode}"
     output, rejected = stem.with_suffix(".json"), Path(f"{stem}_rejected.json")
     if output.is_file():
         return output, "passed"
@@ -115,7 +124,7 @@ def _register_again(layout, case_dir: Path, refusal: dict, console: Console) -> 
     work = case_dir / "registration_work"
     configs = [str(run_config(case_dir, c.name)) for c in layout.captures]
     cmd = [str(BIN / "ns-nerfuser-register"), "--configs", *configs, "--output", str(output), "--work-dir", str(work),
-           "--sampling.source", source, "--mode", mode, f"--no-{check}-check"]  # fmt: skip
+           "--sampling.source", source, "--mode", mode, *[f"--no-{c}-check" for c in checks_off]]  # fmt: skip
     console.print(f"[dim]$ {' '.join(cmd)}[/]")
     started = time.time()
     log = Path(f"{stem}.log")
@@ -169,7 +178,10 @@ def measure(spec: str, console: Console) -> list[Row]:
     )
     rows = []
     for refusal in refusals(record):
-        path, said = _register_again(layout, case_dir, refusal, console)
+        path, said = _register_again(layout, case_dir, refusal, [refusal["check"]], console)
+        alone = None
+        if (other := refused_by(said)) is not None:  # the other render-free check refused it: and the self-check?
+            path, alone = _register_again(layout, case_dir, refusal, [refusal["check"], other], console)
         again = read_registration(path)
         ref = again["reference"]["index"]
         T = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in again["nerfs"]])
@@ -181,7 +193,8 @@ def measure(spec: str, console: Console) -> list[Row]:
             f"{case} ({case_dir.name})", refusal["check"], refusal["source"], refusal["mode"],
             refusal["error"].split("; ")[0],
             worst["r_err_deg"], worst["t_err"], worst["s_err"], any(e["failure"] for e in errs), said,
-            (again.get("pairs") or [{}])[0].get("self_check"), _models(views, _sfm_of(case_dir, again), truth, ref),
+            (again.get("pairs") or [{}])[0].get("self_check"), alone,
+            _models(views, _sfm_of(case_dir, again), truth, ref),
         ))  # fmt: skip
         console.print(rows[-1])
     if not rows:
@@ -210,8 +223,9 @@ def main(cfg: CheckRefusals) -> None:
         "",
         "Each pose source the camera or the model check refused, registered again from the same renders and SfM "
         "without that check: the link (against the stored truth; the paper's rule 5 deg, 0.2, 0.1), the check's "
-        "verdict on it, what the remaining checks said, and each SfM model's own link (views per NeRF; the largest "
-        "first, before the refinement).",
+        "verdict on it, what the remaining checks said (where the other render-free check refused it too, what the "
+        "cross-render check said with both off: *alone*), and each SfM model's own link (views per NeRF; the largest "
+        "first, before the refinement). NCC and depth are the cross-render check's last run.",
         "",
         "| case | refused by | source | link r / t / s | its verdict | the other checks | their verdict | NCC | "
         "depth | SfM models' links |",
@@ -223,10 +237,15 @@ def main(cfg: CheckRefusals) -> None:
         depth = (f"{sc['depth_i_in_j']:+.3f} / {sc['depth_j_in_i']:+.3f}"
                  if sc.get("depth_i_in_j") is not None else "-")  # fmt: skip
         passed = r.checks_without == "passed"
+        others = "passed" if passed else r.checks_without[:160]
+        if r.self_check_alone is not None:
+            alone = r.self_check_alone == "passed"
+            others += (f"; alone: {'passed' if alone else r.self_check_alone[:120]}, "
+                       f"{verdict(r.link_failure, not alone)}")  # fmt: skip
         lines.append(
             f"| {r.case} | {r.check} check | {r.source} ({r.mode}) | {r.r_err_deg:.2f} deg / {r.t_err:.3f} / "
             f"{r.s_err:.3f} | "
-            f"{verdict(r.link_failure, True)} | {'passed' if passed else r.checks_without[:160]} | "
+            f"{verdict(r.link_failure, True)} | {others} | "
             f"{verdict(r.link_failure, not passed)} | {ncc} | {depth} | {_models_cell(r.models)} |"
         )
     write_text_atomic(cfg.report.with_suffix(".json"), json.dumps([asdict(r) for r in rows], indent=1) + "\n")

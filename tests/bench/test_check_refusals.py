@@ -44,6 +44,14 @@ def test_a_solution_refused_with_one_pose_source_is_its_own_refusal(script):
     assert script.refusals({"refused": auto, "settings": SETTINGS}) == []
 
 
+def test_a_refusal_line_names_its_check(script):
+    assert script.refused_by(MODEL) == "model"
+    assert script.refused_by(CAMERA) == "camera"
+    assert script.refused_by(DEPTH) is None
+    assert script.refused_by("passed") is None
+    assert script.refused_by(f"no pose source registered the runs, 4 tried: training (sfm): {MODEL}") is None
+
+
 @pytest.mark.parametrize(
     ("failure", "refused", "right"),
     [(True, True, True), (False, True, False), (True, False, False), (False, False, True)],
