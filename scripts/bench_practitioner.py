@@ -67,6 +67,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     held_out_evals,
     held_out_fused_config,
     images_done,
+    register_command,
     registration_with_transforms,
     rejected_registration,
     reposed_transforms,
@@ -412,17 +413,11 @@ def stage_train(layout, case_dir: Path, cfg: BenchPractitioner) -> None:
         _add_time(case_dir, f"train {cap.name}", seconds)
 
 
-def _register_command(layout, case_dir: Path, output: Path, *options: str) -> list[str]:
-    """``ns-nerfuser-register`` on the case's runs into ``output``, every option at its default but ``options``."""
-    return [str(BIN / "ns-nerfuser-register"), "--configs",
-            *[str(run_config(case_dir, c.name)) for c in layout.captures], "--output", str(output), *options]
-
-
 def stage_register(layout, case_dir: Path) -> None:
     output = case_dir / "registration.json"
     if output.is_file():
         return
-    cmd = _register_command(layout, case_dir, output)
+    cmd = register_command(layout, case_dir, output)
     log = case_dir / "register.log"
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     write_text_atomic(case_dir / "register_commit.txt", (commit or "unknown") + "\n")
@@ -611,7 +606,7 @@ def stage_direct(layout, case_dir: Path, gt: list[dict]) -> None:
         return
     output = case_dir / f"registration_{label}.json"
     if not output.is_file():
-        cmd = _register_command(layout, case_dir, output, "--work-dir", str(case_dir / "registration_work"),
+        cmd = register_command(layout, case_dir, output, "--work-dir", str(case_dir / "registration_work"),
                                 "--direct.enabled" if label == "direct_on" else "--direct.no-enabled")  # fmt: skip
         _add_time(case_dir, f"register ({label})", _run(cmd, case_dir / f"register_{label}.log"))
     ref = read_registration(output)["reference"]["index"]

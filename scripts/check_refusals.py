@@ -31,14 +31,18 @@ import tyro
 from rich.console import Console
 
 from nerfuser_ns import sim3
-from nerfuser_ns.bench.practitioner_cases import capture_ground_truth, case_layout, case_registration, run_config
+from nerfuser_ns.bench.practitioner_cases import (
+    capture_ground_truth,
+    case_layout,
+    case_registration,
+    register_command,
+)
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import RegistrationConfig, read_registration
 from nerfuser_ns.registration.render_cache import ViewSet
 from nerfuser_ns.registration.self_check import model_links
 from nerfuser_ns.registration.sfm import SfMResult, other_models
 
-BIN = Path(sys.executable).parent
 CHECKS = {"camera": ": its SfM cameras disagree with its registered transform", "model": ": another SfM model ("}
 """Per render-free check: how its refusal begins after the NeRF's name (``self_check.camera_failure``,
 ``self_check.model_failure``); ``--no-<check>-check`` turns it off."""
@@ -122,9 +126,8 @@ def _register_again(
     if rejected.is_file():
         return rejected, read_registration(rejected)["refused"]
     work = case_dir / "registration_work"
-    configs = [str(run_config(case_dir, c.name)) for c in layout.captures]
-    cmd = [str(BIN / "ns-nerfuser-register"), "--configs", *configs, "--output", str(output), "--work-dir", str(work),
-           "--sampling.source", source, "--mode", mode, *[f"--no-{c}-check" for c in checks_off]]  # fmt: skip
+    cmd = register_command(layout, case_dir, output, "--work-dir", str(work), "--sampling.source", source, "--mode",
+                           mode, *[f"--no-{c}-check" for c in checks_off])  # fmt: skip
     console.print(f"[dim]$ {' '.join(cmd)}[/]")
     started = time.time()
     log = Path(f"{stem}.log")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,6 +65,13 @@ def case_registration(spec: str) -> tuple[str, Path, Path]:
 def run_config(case_dir: Path, capture: str) -> Path:
     """A capture's stock nerfacto run (the ``train`` stage)."""
     return case_dir / "runs" / capture / "nerfacto" / "bench" / "config.yml"
+
+
+def register_command(layout, case_dir: Path, output: Path, *options: str) -> list[str]:
+    """``ns-nerfuser-register`` of this Python's environment on the case's runs into ``output``, every option at its
+    default but ``options``."""
+    return [str(Path(sys.executable).parent / "ns-nerfuser-register"), "--configs",
+            *[str(run_config(case_dir, c.name)) for c in layout.captures], "--output", str(output), *options]
 
 
 def rejected_registration(case_dir: Path) -> Path:

@@ -6,7 +6,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,6 +24,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     fused_appearance_matching,
     fused_config,
     reference_links,
+    register_command,
     registration_with_transforms,
     rejected_registration,
     reposed_transforms,
@@ -65,6 +68,15 @@ def test_case_layouts_as_the_benchmark_renders_them():
     assert len(case_layout("street:4", num_captures=3).captures) == 3
     oc = case_layout("object-centric:4", width=64, height=48)
     assert len(oc.captures) == 2 and all(c.num_views == 64 for c in oc.captures)
+
+
+def test_the_register_command_names_every_capture_run_and_only_the_given_options(tmp_path):
+    street = case_layout("street:4", num_captures=3)
+    cmd = register_command(street, tmp_path, tmp_path / "r.json", "--no-model-check")
+    assert Path(cmd[0]).name == "ns-nerfuser-register" and Path(cmd[0]).parent == Path(sys.executable).parent
+    configs = cmd[cmd.index("--configs") + 1 : cmd.index("--output")]
+    assert configs == [str(tmp_path / "runs" / c.name / "nerfacto" / "bench" / "config.yml") for c in street.captures]
+    assert cmd[cmd.index("--output") + 1 :] == [str(tmp_path / "r.json"), "--no-model-check"]
 
 
 def test_tie_to_world_recovers_a_capture_frame_and_measures_its_noise():
