@@ -607,7 +607,7 @@ def stage_direct(layout, case_dir: Path, gt: list[dict]) -> None:
     output = case_dir / f"registration_{label}.json"
     if not output.is_file():
         cmd = register_command(layout, case_dir, output, "--work-dir", str(case_dir / "registration_work"),
-                                "--direct.enabled" if label == "direct_on" else "--direct.no-enabled")  # fmt: skip
+                               "--direct.enabled" if label == "direct_on" else "--direct.no-enabled")  # fmt: skip
         _add_time(case_dir, f"register ({label})", _run(cmd, case_dir / f"register_{label}.log"))
     ref = read_registration(output)["reference"]["index"]
     for placement, to_world in (("stored", [g["nerf_to_world"] for g in gt]),

@@ -438,9 +438,9 @@ def model_links(
     views: Sequence[ViewSet], sfm: SfMResult, config: RegistrationConfig,
     models: Sequence[dict[str, np.ndarray]] | None = None,
 ) -> list[ModelLinks]:
-    """Per other SfM model (largest first): the NeRFs it links on its own, each by ``config.estimator`` as the largest
-    model's are. ``models``: the other models' poses (default: read from the SfM folder,
-    :func:`~nerfuser_ns.registration.sfm.other_models`)."""
+    """Per SfM model of ``models``, in their order: the NeRFs it links on its own, each by ``config.estimator`` as the
+    largest model's are. ``models``: each model's poses (default: the SfM's other models, largest first, read from its
+    folder by :func:`~nerfuser_ns.registration.sfm.other_models`)."""
     models = other_models(sfm) if models is None else models
     out = []
     for poses in models:
