@@ -35,6 +35,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     capture_ground_truth,
     case_layout,
     case_registration,
+    refusing_check,
     register_command,
 )
 from nerfuser_ns.files import write_text_atomic
@@ -43,9 +44,8 @@ from nerfuser_ns.registration.render_cache import ViewSet
 from nerfuser_ns.registration.self_check import model_links
 from nerfuser_ns.registration.sfm import SfMResult, other_models
 
-CHECKS = {"camera": ": its SfM cameras disagree with its registered transform", "model": ": another SfM model ("}
-"""Per render-free check: how its refusal begins after the NeRF's name (``self_check.camera_failure``,
-``self_check.model_failure``); ``--no-<check>-check`` turns it off."""
+RENDER_FREE = ("camera", "model")
+"""The render-free checks (keys of ``practitioner_cases.REFUSAL_CHECKS``); ``--no-<check>-check`` turns one off."""
 
 
 @dataclass
@@ -62,7 +62,7 @@ class CheckRefusals:
 class Row:
     case: str
     check: str
-    """The check that refused (a key of :data:`CHECKS`)."""
+    """The check that refused (one of :data:`RENDER_FREE`)."""
     source: str
     mode: str
     refusal: str
@@ -108,9 +108,9 @@ def verdict(link_failure: bool, refused: bool) -> str:
 
 
 def refused_by(line: str) -> str | None:
-    """The render-free check (a key of :data:`CHECKS`) whose refusal ``line`` is, else None: the check's line follows
-    the NeRF's name (an automatic choice's summary line names its attempts' checks later on)."""
-    return next((c for c, start in CHECKS.items() if line.partition(":")[2].startswith(start[1:])), None)
+    """The render-free check (one of :data:`RENDER_FREE`) whose refusal ``line`` is, else None."""
+    check = refusing_check(line)
+    return check if check in RENDER_FREE else None
 
 
 def _register_again(

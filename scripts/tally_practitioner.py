@@ -19,7 +19,14 @@ from pathlib import Path
 
 import tyro
 
-from nerfuser_ns.bench.practitioner_cases import AUTO_COLUMN, BLEND_COLUMNS, blend_gains, summarise
+from nerfuser_ns.bench.practitioner_cases import (
+    AUTO_COLUMN,
+    BLEND_COLUMNS,
+    REFUSAL_CHECKS,
+    blend_gains,
+    refusals_scored,
+    summarise,
+)
 from nerfuser_ns.files import write_text_atomic
 
 
@@ -54,6 +61,26 @@ OTHER_TRUTHS = ("errors_optimized", "errors_pose", "errors_content")
 
 def _fmt(x: float | None, digits: int) -> str:
     return "-" if x is None else f"{x:.{digits}f}"
+
+
+def refusal_lines(records: list[dict]) -> list[str]:
+    """The table of each check's refusals against the truth (``practitioner_cases.refusals_scored``)."""
+    refusals = refusals_scored(records)
+    lines = ["", "Each check's refusals against the stored truth: every pose source an automatic choice tried before "
+             "the one it kept (or refused last) that a check refused, the refused link judged by the paper's rule "
+             "(its worst NeRF; a refusal of a failure is right, of a success wrong). A refused case's last refusal "
+             "is not in its record; *unscored*: records written before refused links were kept.", "",
+             "| check | refusals | of failures (right) | of successes (wrong) | the successes (case: r_err deg) | "
+             "unscored |", "|" + " --- |" * 6]  # fmt: skip
+    for check in REFUSAL_CHECKS:
+        found = [r for r in refusals if r.check == check]
+        if not found:
+            continue
+        wrong = [r for r in found if r.failure is False]
+        lines.append(f"| {check} | {len(found)} | {sum(r.failure is True for r in found)} | {len(wrong)} | "
+                     + ", ".join(f"{r.case}: {r.r_err_deg:.2f}" for r in wrong) + " | "
+                     f"{sum(r.failure is None for r in found)} |")  # fmt: skip
+    return lines
 
 
 def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
@@ -114,6 +141,7 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
             cells = ["-" if k not in g else f"best {g[k].best}/{g[k].cases}" if k == "idw_sample" else g[k].cell()
                      for k, _ in columns]  # fmt: skip
             lines.append(f"| {layout} | " + " | ".join(cells) + " |")
+    lines += refusal_lines(records)
     blends = summary.idw_sample_over_nearest
     covered, auto = summary.coverage_over_nearest, summary.auto_over_nearest
     lines += ["", f"IDW-Sample >= Nearest on {sum(blends)} of {len(blends)} cases with a blend; Coverage (ours) >= "

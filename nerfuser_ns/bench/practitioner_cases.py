@@ -309,6 +309,57 @@ def summarise(records: list[dict], errors: str = "errors") -> Summary:
                    [b["auto"] >= b["nearest"] for b in blends if b.get("auto") is not None])  # fmt: skip
 
 
+REFUSAL_CHECKS = {
+    "camera": "its SfM cameras disagree with its registered transform",
+    "model": "another SfM model (",
+    "twin": "twin check: ",
+    "NCC": "cross-render self-check failed",
+    "depth": "cross-render depth check failed",
+}
+"""Per check that can refuse a registration: how its line goes on after the NeRF (or pair) it names
+(``self_check.camera_failure``, ``model_failure``, ``pair_failure``), or, the twin check's, how its line begins."""
+
+
+def refusing_check(line: str) -> str | None:
+    """The check (a key of :data:`REFUSAL_CHECKS`) whose refusal ``line`` is, else None (a registration error that is
+    no check's refusal). Only the start counts: an automatic choice's summary names its attempts' checks later on."""
+    if line.startswith(REFUSAL_CHECKS["twin"]):
+        return "twin"
+    rest = line.partition(": ")[2]
+    return next((c for c, start in REFUSAL_CHECKS.items() if c != "twin" and rest.startswith(start)), None)
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """One pose source a check refused in a case, scored against the stored truth where the record kept it."""
+
+    case: str
+    check: str
+    source: str
+    mode: str
+    r_err_deg: float | None
+    """The refused link's worst rotation error over its NeRFs (None: the record kept no solution)."""
+    failure: bool | None
+    """The refused link fails the paper's rule, so the refusal was right (None: unscored)."""
+
+
+def refusals_scored(records: list[dict]) -> list[Refusal]:
+    """Every refusal the case records scored: each pose source an automatic choice tried before the one it kept (or
+    refused last) and a check refused (``registration.attempts``). A refused case's last refusal is not among them:
+    its line is not in the record."""
+    out = []
+    for r in records:
+        for a in r["registration"].get("attempts") or []:
+            if (check := refusing_check(a.get("error", ""))) is None:
+                continue
+            errs = a.get("errors")
+            worst = max(errs, key=lambda e: e["r_err_deg"]) if errs else None
+            out.append(Refusal(r["case"], check, a["source"], a["mode"],
+                               None if worst is None else worst["r_err_deg"],
+                               None if errs is None else any(e["failure"] for e in errs)))  # fmt: skip
+    return out
+
+
 def auto_blend_key(record: dict) -> str:
     """The blend column (:data:`BLEND_COLUMNS`) of the method ``auto`` renders a case with: as the report recorded it
     (``auto_blend``, from the registration file's training cameras through :mod:`nerfuser_ns.blend_choice`, what the

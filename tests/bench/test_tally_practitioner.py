@@ -147,3 +147,46 @@ def test_auto_takes_the_recorded_choice_or_the_layouts_and_reads_a_registration_
     along = auto_blend_choice(registration(ring, facade))
     assert along["method"] == "coverage" and "not every NeRF's cameras look at a centre" in along["reason"]
 
+
+
+def _refusal_lines() -> dict[str, str]:
+    """One refusal line of each check, as the registration writes them."""
+    from nerfuser_ns.registration import RegistrationConfig
+    from nerfuser_ns.registration.self_check import CrossRenderCheck, camera_failure, failure_message
+
+    config = RegistrationConfig()
+    return {
+        "camera": camera_failure(["a", "b"], [1.0, 1.0], [0.1, 9.0], [0.0, 0.0], config),
+        "NCC": failure_message([CrossRenderCheck(0, 1, 0.1, 0.2, 4)], ["a", "b"], config),
+        "depth": failure_message([CrossRenderCheck(0, 1, 0.9, 0.8, 4, depth_i_in_j=0.3)], ["a", "b"], config),
+        "model": ("b: another SfM model (31 views) links it to a 13.4 deg, 0.647 reference units and 2.132 in log "
+                  "scale away from the registration's link"),  # fmt: skip
+        "twin": "twin check: a / b: another transform (180 deg, 2 units from the SfM's link, 40 3D matches against 9)",
+    }
+
+
+def test_each_refusal_line_names_its_check_and_a_summary_line_none():
+    from nerfuser_ns.bench.practitioner_cases import refusing_check
+
+    lines = _refusal_lines()
+    assert {check: refusing_check(line) for check, line in lines.items()} == {c: c for c in lines}
+    assert refusing_check(f"no pose source registered the runs, 4 tried: training (sfm): {lines['camera']}") is None
+    assert refusing_check("a: 3 of 16 views registered by the SfM (needs 4)") is None
+
+
+def test_each_checks_refusals_are_judged_by_the_truth_of_the_link_they_refused(tally):
+    lines = _refusal_lines()
+
+    def attempt(check, r, failure=False):
+        errors = None if r is None else [{"nerf": "b", "r_err_deg": r, "t_err": 0.0, "s_err": 0.0, "failure": failure}]
+        return {"source": "training", "mode": "sfm", "error": lines[check], "errors": errors}
+
+    right, wrong = _record("drive-1", 0.4), _record("drive-2", None)
+    right["registration"]["attempts"] = [attempt("camera", 9.0, failure=True), attempt("depth", 1.9)]
+    wrong["registration"]["attempts"] = [attempt("camera", 0.3), attempt("camera", None),
+                                         {"source": "both", "mode": "sfm", "error": "a: no views", "errors": None}]
+    table = {line.split(" | ")[0].strip("| "): line for line in tally.refusal_lines([right, wrong]) if
+             line.startswith("| ") and not line.startswith(("| check", "| ---"))}  # fmt: skip
+    assert set(table) == {"camera", "depth"}  # the line no check wrote is no refusal
+    assert table["camera"] == "| camera | 3 | 1 | 1 | drive-2: 0.30 | 1 |"
+    assert table["depth"] == "| depth | 1 | 0 | 1 | drive-1: 1.90 | 0 |"
