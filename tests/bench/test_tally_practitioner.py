@@ -1,5 +1,5 @@
 """The practitioner reports' summary (:func:`nerfuser_ns.bench.practitioner_cases.summarise`) and the tally of case
-records from several reports (scripts/tally_practitioner.py)."""
+records from several reports (scripts/tally_practitioner.py), with each check's refusals judged by the truth."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from nerfuser_ns.bench.practitioner_cases import auto_blend_choice, blend_gains, summarise, with_auto
-from nerfuser_ns.registration import NerfEntry, write_minimal_registration
+from nerfuser_ns.bench.practitioner_cases import auto_blend_choice, blend_gains, refusing_check, summarise, with_auto
+from nerfuser_ns.registration import NerfEntry, RegistrationConfig, write_minimal_registration
 from nerfuser_ns.registration.record import TrainingCameras
+from nerfuser_ns.registration.self_check import CrossRenderCheck, camera_failure, failure_message
 from nerfuser_ns.sampling import look_at
 
 
@@ -148,12 +149,9 @@ def test_auto_takes_the_recorded_choice_or_the_layouts_and_reads_a_registration_
     assert along["method"] == "coverage" and "not every NeRF's cameras look at a centre" in along["reason"]
 
 
-
 def _refusal_lines() -> dict[str, str]:
-    """One refusal line of each check, as the registration writes them."""
-    from nerfuser_ns.registration import RegistrationConfig
-    from nerfuser_ns.registration.self_check import CrossRenderCheck, camera_failure, failure_message
-
+    """One refusal line of each check: the camera, NCC and depth lines written by the registration's own functions, the
+    model and twin lines (whose functions need an SfM or renders) copied from theirs."""
     config = RegistrationConfig()
     return {
         "camera": camera_failure(["a", "b"], [1.0, 1.0], [0.1, 9.0], [0.0, 0.0], config),
@@ -166,8 +164,6 @@ def _refusal_lines() -> dict[str, str]:
 
 
 def test_each_refusal_line_names_its_check_and_a_summary_line_none():
-    from nerfuser_ns.bench.practitioner_cases import refusing_check
-
     lines = _refusal_lines()
     assert {check: refusing_check(line) for check, line in lines.items()} == {c: c for c in lines}
     assert refusing_check(f"no pose source registered the runs, 4 tried: training (sfm): {lines['camera']}") is None
