@@ -56,6 +56,9 @@ class CheckRefusals:
     """``LAYOUT:SEED=FOLDER[,REGISTRATION]`` (the case folder, the registration file in it)."""
     report: Path
     """Markdown report (a JSON of the rows beside it)."""
+    again: bool = False
+    """Also register each refusal again with this checkout's library and every check on (but the camera check where it
+    refused): what the checks say now (``registration_now_<commit>_<source>_<mode>.json``, made once per commit)."""
 
 
 @dataclass
@@ -82,6 +85,12 @@ class Row:
     models: list[dict]
     """Per SfM model (the largest first): views per NeRF and its link against the truth (None where it links fewer
     than two NeRFs)."""
+    now: str | None = None
+    """With ``--again``: what this checkout's library said (``passed`` or its refusal line), else None."""
+    now_link: dict | None = None
+    """... its link's worst NeRF against the truth (a refused one's too)."""
+    now_model_check: dict | None = None
+    """... its record's ``model_check`` (the other SfM models' links scored by cross-rendering), where it has one."""
 
 
 def refusals(record: dict) -> list[dict]:
@@ -114,12 +123,13 @@ def refused_by(line: str) -> str | None:
 
 
 def _register_again(
-    layout, case_dir: Path, refusal: dict, checks_off: list[str], console: Console
+    layout, case_dir: Path, refusal: dict, checks_off: list[str], console: Console, tag: str | None = None
 ) -> tuple[Path, str]:
     """``ns-nerfuser-register`` on the case's runs with the refusal's source and mode, ``checks_off`` off: the record
-    it wrote (or refused) and ``passed`` or its refusal line."""
+    it wrote (or refused) and ``passed`` or its refusal line. ``tag``: the files' name in place of the checks off."""
     source, mode = refusal["source"], refusal["mode"]
-    stem = case_dir / f"registration_no_{'_'.join(sorted(checks_off))}_check_{source}_{mode}"
+    tag = tag or f"no_{'_'.join(sorted(checks_off))}_check"
+    stem = case_dir / f"registration_{tag}_{source}_{mode}"
     output, rejected = stem.with_suffix(".json"), Path(f"{stem}_rejected.json")
     if output.is_file():
         return output, "passed"
@@ -172,37 +182,70 @@ def _errors(T: np.ndarray, T_true: np.ndarray) -> dict:
             "failure": bool(e.is_failure())}  # fmt: skip
 
 
-def measure(spec: str, console: Console) -> list[Row]:
+def _commit() -> str:
+    """This checkout's short commit, ``-dirty`` with uncommitted changes to tracked files."""
+    root = Path(__file__).resolve().parent.parent
+    sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=root).returncode != 0
+    return sha.stdout.strip() + ("-dirty" if dirty else "")
+
+
+def _worst_link(record: dict, truth: np.ndarray) -> dict:
+    """A record's link against the truth: its worst NeRF's errors, ``failure`` where any NeRF's link fails."""
+    ref = record["reference"]["index"]
+    T = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in record["nerfs"]])
+    errs = [_errors(T[i], truth[i]) for i in range(len(T)) if i != ref]
+    return {**max(errs, key=lambda e: e["r_err_deg"]), "failure": any(e["failure"] for e in errs)}
+
+
+def measure(spec: str, console: Console, again: bool = False) -> list[Row]:
     case, case_dir, registration_path = case_registration(spec)
     layout = case_layout(case)
     record = read_registration(registration_path)
     truth = sim3.to_reference_frame(
         np.stack([g["nerf_to_world"] for g in capture_ground_truth(layout, case_dir, optimized=False)])
     )
+    commit = _commit() if again else None
     rows = []
     for refusal in refusals(record):
         path, said = _register_again(layout, case_dir, refusal, [refusal["check"]], console)
         alone = None
         if (other := refused_by(said)) is not None:  # the other render-free check refused it: and the self-check?
             path, alone = _register_again(layout, case_dir, refusal, [refusal["check"], other], console)
-        again = read_registration(path)
-        ref = again["reference"]["index"]
-        T = np.stack([np.asarray(n["T_to_reference"], dtype=np.float64) for n in again["nerfs"]])
-        others = [i for i in range(len(T)) if i != ref]
-        errs = [_errors(T[i], truth[i]) for i in others]
-        worst = max(errs, key=lambda e: e["r_err_deg"])
-        views = [ViewSet.from_folder(n["render_folder"], name=n["name"]) for n in again["nerfs"]]
-        rows.append(Row(
+        again_record = read_registration(path)
+        worst = _worst_link(again_record, truth)
+        views = [ViewSet.from_folder(n["render_folder"], name=n["name"]) for n in again_record["nerfs"]]
+        row = Row(
             f"{case} ({case_dir.name})", refusal["check"], refusal["source"], refusal["mode"],
             refusal["error"].split("; ")[0],
-            worst["r_err_deg"], worst["t_err"], worst["s_err"], any(e["failure"] for e in errs), said,
-            (again.get("pairs") or [{}])[0].get("self_check"), alone,
-            _models(views, _sfm_of(case_dir, again), truth, ref),
-        ))  # fmt: skip
+            worst["r_err_deg"], worst["t_err"], worst["s_err"], worst["failure"], said,
+            (again_record.get("pairs") or [{}])[0].get("self_check"), alone,
+            _models(views, _sfm_of(case_dir, again_record), truth, ref=again_record["reference"]["index"]),
+        )  # fmt: skip
+        if commit is not None:
+            off = ["camera"] if refusal["check"] == "camera" else []
+            now_path, row.now = _register_again(layout, case_dir, refusal, off, console, tag=f"now_{commit}")
+            now_record = read_registration(now_path)
+            row.now_link, row.now_model_check = _worst_link(now_record, truth), now_record.get("model_check")
+        rows.append(row)
         console.print(rows[-1])
     if not rows:
         console.print(f"[yellow]{registration_path}: no pose source was refused by the camera or model check[/]")
     return rows
+
+
+def _now_cell(r: Row) -> str:
+    """What the checks of this checkout said (``--again``): passed or refused, the verdict, the model contests."""
+    if r.now is None or r.now_link is None:
+        return "-"
+    refused = r.now != "passed"
+    cell = f"{'refused' if refused else 'passed'} at {r.now_link['r_err_deg']:.2f} deg: " + verdict(
+        r.now_link["failure"], refused)
+    for c in (r.now_model_check or {}).get("contests", []):
+        if "registration_ncc" in c:
+            cell += (f"; another model {c['r_err_deg']:.1f} deg away, NCC {c['model_ncc']:.2f} against "
+                     f"{c['registration_ncc']:.2f}: {c['verdict']}")  # fmt: skip
+    return cell
 
 
 def _models_cell(models: list[dict]) -> str:
@@ -218,7 +261,7 @@ def _models_cell(models: list[dict]) -> str:
 
 def main(cfg: CheckRefusals) -> None:
     console = Console()
-    rows = [r for spec in cfg.cases for r in measure(spec, console)]
+    rows = [r for spec in cfg.cases for r in measure(spec, console, cfg.again)]
     lines = [
         "# The render-free checks' refusals against the truth",
         "",
@@ -228,11 +271,14 @@ def main(cfg: CheckRefusals) -> None:
         "without that check: the link (against the stored truth; the paper's rule 5 deg, 0.2, 0.1), the check's "
         "verdict on it, what the remaining checks said (where the other render-free check refused it too, what the "
         "cross-render check said with both off: *alone*), and each SfM model's own link (views per NeRF; the largest "
-        "first, before the refinement). NCC and depth are the cross-render check's last run.",
+        "first, before the refinement). NCC and depth are the cross-render check's last run."
+        + (" *Now*: registered again with this checkout's library, every check on but the camera check where it "
+           "refused (the model check's contests: the other model's link and the registration's cross-rendered on the "
+           "same views)." if cfg.again else ""),
         "",
         "| case | refused by | source | link r / t / s | its verdict | the other checks | their verdict | NCC | "
-        "depth | SfM models' links |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "depth | SfM models' links |" + (" now |" if cfg.again else ""),
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |" + (" --- |" if cfg.again else ""),
     ]
     for r in rows:
         sc = r.self_check or {}
@@ -250,6 +296,7 @@ def main(cfg: CheckRefusals) -> None:
             f"{r.s_err:.3f} | "
             f"{verdict(r.link_failure, True)} | {others} | "
             f"{verdict(r.link_failure, not passed)} | {ncc} | {depth} | {_models_cell(r.models)} |"
+            + (f" {_now_cell(r)} |" if cfg.again else "")
         )
     write_text_atomic(cfg.report.with_suffix(".json"), json.dumps([asdict(r) for r in rows], indent=1) + "\n")
     write_text_atomic(cfg.report, "\n".join(lines) + "\n")

@@ -27,6 +27,7 @@ import numpy as np
 from rich.console import Console
 
 from nerfuser_ns import sim3
+from nerfuser_ns.cameras import Intrinsics
 from nerfuser_ns.capture_check import SQUARE_PIXEL_ADVICE, FoldCheck, check_dataset, fold_check, intrinsics_check
 from nerfuser_ns.match_check import MatchCheck, check_dataset_matches
 from nerfuser_ns.registration.assemble import build_known_geometry_result, build_result
@@ -76,10 +77,12 @@ from nerfuser_ns.registration.self_check import (
     covisibility,
     cross_render_check,
     failure_message,
-    model_failure,
+    model_contest,
+    model_disagreements,
+    model_failure_line,
     spanning_pairs,
 )
-from nerfuser_ns.registration.sfm import check_registered_views, run_sfm
+from nerfuser_ns.registration.sfm import SfMResult, check_registered_views, run_sfm
 from nerfuser_ns.registration.twin_check import twin_check
 from nerfuser_ns.renderers import NerfstudioRenderer, Renderer, gives_depth
 from nerfuser_ns.runs import default_device, run_names
@@ -433,7 +436,11 @@ def register_once(
     # Before the direct alignment and the self-check, whose renders a link they refuse would waste (the alignment's
     # changes stay far inside their 5-degree rule; the cameras are checked again against the final transform).
     early = camera_failure_of(views, estimates, T_to_C, T_to_ref, [r.name for r in renderers], config)
-    models = model_failure(views, sfm, T_to_ref, config) if config.model_check and early is None else None
+    models, contests = None, None
+    if config.model_check and early is None:
+        t0 = time.perf_counter()
+        models, contests = contest_models(renderers, views, sfm, T_to_ref, intr, config, order, console)
+        timings["model_check"] = time.perf_counter() - t0
     twin = None
     if config.twin_check and depth and early is None and models is None:  # 5a'. a wrong copy of repeated structure?
         t0 = time.perf_counter()
@@ -470,10 +477,47 @@ def register_once(
     result.direct = direct
     result.colocated = colocated
     result.twin_check = None if twin is None else twin.summary
+    result.model_check = None if not contests else {"contests": contests}
     failure = check_failure(result, checks, config, models or (twin.refusal if twin is not None else None))
     if failure is not None:
         raise (TwinLinked if twin is not None and failure == twin.refusal else RegistrationFailed)(failure, result)
     return result
+
+
+def contest_models(
+    renderers: Sequence[Renderer], views: Sequence[ViewSet], sfm: SfMResult, T_to_ref: np.ndarray, intr: Intrinsics,
+    config: RegistrationConfig, order: dict[tuple[int, int], Sequence[int]], console: Console,
+) -> tuple[str | None, list[dict]]:
+    """The model check: each link of another SfM model that disagrees with the registration's
+    (:func:`~nerfuser_ns.registration.self_check.model_disagreements`) cross-rendered beside it on the same views and
+    judged by :func:`~nerfuser_ns.registration.self_check.model_contest`. Returns the refusal line of the first that
+    refuses (or None) and what the record keeps of each contest. With the self-check off (no views to render) a
+    disagreement refuses unscored, as the check did before it rendered."""
+    names = [r.name for r in renderers]
+    contests: list[dict] = []
+    scoring = replace(config, colour_views=0)  # the scores alone
+    for d in model_disagreements(views, sfm, T_to_ref, config):
+        contest = {"model_views": d.num_views, "nerfs": [names[d.a], names[d.j]], "r_err_deg": json_float(d.r_err_deg),
+                   "t_err_reference": json_float(d.t_ref), "s_err": json_float(d.s_err)}  # fmt: skip
+        contests.append(contest)
+        if config.self_check_views <= 0:
+            contest["verdict"] = "refused (unscored: the self-check is off)"
+            return model_failure_line(d, names, config), contests
+        with console.status(f"model check: another SfM model links {names[d.j]} to {names[d.a]} otherwise; "
+                            "cross-rendering its link beside the registration's"):  # fmt: skip
+            (mine,) = cross_render_check(renderers, views, T_to_ref, [(d.a, d.j)], intr, scoring, order)
+            (theirs,) = cross_render_check(renderers, views, d.T_to_ref, [(d.a, d.j)], intr, scoring, order)
+        refuses = model_contest(mine, theirs, config)
+        contest.update(registration_ncc=json_float(mine.score), model_ncc=json_float(theirs.score),
+                       registration_depth=json_float(mine.depth_disagreement),
+                       model_depth=json_float(theirs.depth_disagreement),
+                       verdict="refused" if refuses else "kept the registration's link")  # fmt: skip
+        if refuses:
+            return model_failure_line(d, names, config, (mine.score, theirs.score)), contests
+        console.print(f"model check: another SfM model ({d.num_views} views) links {names[d.j]} to {names[d.a]} "
+                      f"{d.r_err_deg:.1f} deg away, but its link cross-renders at NCC {theirs.score:.2f} against the "
+                      f"registration's {mine.score:.2f} (or fails the self-check): the registration's link kept")
+    return None, contests
 
 
 def check_failure(
@@ -481,7 +525,7 @@ def check_failure(
     models: str | None = None,
 ) -> str | None:
     """Why the solution cannot be trusted, in one line (cameras that contradict their transform, other SfM models
-    that link the NeRFs otherwise (``models``, :func:`model_failure`'s line), then a failed cross-render self-check),
+    that link the NeRFs otherwise (``models``, :func:`contest_models`'s line), then a failed cross-render self-check),
     or None."""
     cameras = None
     if config.camera_check:

@@ -357,6 +357,9 @@ class RegistrationResult:
     twin_check: dict | None = None
     """Mode sfm's twin check (``--twin-check``): per checked pair its 3D matches, hypotheses, and the SfM link's and
     the best rival's worst-view NCC (:mod:`.twin_check`), or why it was skipped."""
+    model_check: dict | None = None
+    """Mode sfm's model check, where another SfM model linked two NeRFs otherwise: per such link its difference from
+    the registration's, both links' cross-render scores and the verdict (``pipeline.contest_models``)."""
     reference_colour: dict | None = None
     """Appearance matching: the reference NeRF's colour map to its training images (``map``, ``views``, ``pixels``)
     or why there is none (``skipped``); already composed into every ``colour_to_reference``."""
@@ -399,6 +402,8 @@ class RegistrationResult:
             record["colocated"] = self.colocated
         if self.twin_check is not None:
             record["twin_check"] = self.twin_check
+        if self.model_check is not None:
+            record["model_check"] = self.model_check
         if self.reference_colour is not None:
             record["reference_colour"] = self.reference_colour
         if self.capture_checks is not None:
@@ -412,7 +417,7 @@ class RegistrationResult:
         known = {"format_version", "kind", "created", "reference", "conventions", "nerfs", "pairs", "sfm",
                  "refinement", "settings", "timings_s", "compute_timings_s", "reused", "sampling_choice",
                  "known_geometry", "graph", "reference_colour", "direct", "colocated", "twin_check",
-                 "capture_checks"}  # fmt: skip
+                 "model_check", "capture_checks"}  # fmt: skip
         try:
             if record.get("kind") != KIND:
                 raise ValueError(f"kind {record.get('kind')!r} is not {KIND!r}")
@@ -426,7 +431,8 @@ class RegistrationResult:
                 compute_timings_s=record["compute_timings_s"], sampling_choice=record.get("sampling_choice"),
                 reference_colour=record.get("reference_colour"), direct=record.get("direct"),
                 colocated=record.get("colocated"), twin_check=record.get("twin_check"),
-                capture_checks=record.get("capture_checks"), format_version=record["format_version"],
+                model_check=record.get("model_check"), capture_checks=record.get("capture_checks"),
+                format_version=record["format_version"],
                 extra={k: v for k, v in record.items() if k not in known},
             )  # fmt: skip
         except (KeyError, TypeError, ValueError, AttributeError) as e:

@@ -9,7 +9,8 @@ solution (:func:`depth_views`: among training views where the renders hold any),
 points that the NCC uses: those are the content the link was fitted to, where a link wrong elsewhere still agrees.
 Before it, and before the direct alignment's renders, each NeRF's SfM cameras are checked against its transform
 (:func:`camera_failure`), and the SfM's other models that link the same NeRFs against the registration's link
-(:func:`model_failure`); the cameras again against the final transform.
+(:func:`model_disagreements`; a disagreement refuses the registration unless the other model's link cross-renders
+clearly worse, :func:`model_contest`); the cameras again against the final transform.
 """
 
 from __future__ import annotations
@@ -457,23 +458,42 @@ def model_links(
     return out
 
 
-def model_failure(
+@dataclass
+class ModelDisagreement:
+    """Another SfM model's link of two NeRFs beyond the paper's failure rule from the registration's."""
+
+    num_views: int
+    """Views the other model registered."""
+    a: int
+    """The NeRF the other model's link is anchored at (its smallest index)."""
+    j: int
+    """The NeRF it links to ``a`` otherwise."""
+    r_err_deg: float
+    t_ref: float
+    """Translation difference in reference units."""
+    s_err: float
+    T_to_ref: Float[np.ndarray, "k 4 4"]
+    """The registration's transforms with ``j``'s replaced by the other model's link to ``a``: what
+    :func:`cross_render_check` scores the other model's link by."""
+
+
+def model_disagreements(
     views: Sequence[ViewSet],
     sfm: SfMResult,
     T_to_ref: Float[np.ndarray, "k 4 4"],
     config: RegistrationConfig,
     models: Sequence[dict[str, np.ndarray]] | None = None,
-) -> str | None:
-    """The one-line error when another SfM model links two NeRFs differently from the registration (beyond the paper's
-    failure rule, translations in reference units), else None.
+) -> list[ModelDisagreement]:
+    """Every link of another SfM model that differs from the registration's beyond the paper's failure rule
+    (translations in reference units), the largest model first.
 
     The SfM splits views it cannot join; a smaller model that still holds :data:`MODEL_CHECK_MIN_VIEWS` views of two
     NeRFs links them on its own (:func:`model_links`). Views of one consistent overlap link them alike, so models that
-    disagree mean the SfM linked content that is not the same (measured: a drive pair whose three models linked the
-    NeRFs 5.8, 14 and 23 deg from the truth, the largest passing the self-check at NCC 0.63 and the camera check).
-    ``models``: as :func:`model_links`'s.
+    disagree mean the SfM linked content that is not the same, in one of the models (measured: a drive pair whose three
+    models linked the NeRFs 5.8, 14 and 23 deg from the truth, the largest passing the self-check at NCC 0.63 and the
+    camera check). ``models``: as :func:`model_links`'s.
     """
-    names = [v.name for v in views]
+    out = []
     for model in model_links(views, sfm, config, models):
         if len(model.T_to_model) < 2:
             continue
@@ -481,18 +501,59 @@ def model_failure(
         T_a = model.T_to_model[a]
         scale_a = float(sim3.decompose_sim3(T_to_ref[a])[2])
         for j in others:
-            e = sim3.sim3_errors(sim3.invert_sim3(T_a) @ model.T_to_model[j],
-                                 sim3.invert_sim3(T_to_ref[a]) @ T_to_ref[j])  # fmt: skip
+            link = sim3.invert_sim3(T_a) @ model.T_to_model[j]  # j -> a, as the other model links them
+            e = sim3.sim3_errors(link, sim3.invert_sim3(T_to_ref[a]) @ T_to_ref[j])
             t_ref = float(e.t_err) * scale_a
             if sim3.is_failure(e.r_err_deg, t_ref, e.s_err):
-                return (
-                    f"{names[j]}: another SfM model ({model.num_views} views) links it to {names[a]} "
-                    f"{float(e.r_err_deg):.1f} deg, {t_ref:.3f} reference units and {float(e.s_err):.3f} in log scale "
-                    "away from the registration's link (the paper's failure rule: 5 deg, 0.2, 0.1): views the SfM "
-                    f"could not join disagree, so it probably merged unrelated content; "
-                    f"{suggestion(config.sampling.source)} (or --no-model-check to keep it)"
-                )
-    return None
+                T_other = np.array(T_to_ref, dtype=np.float64, copy=True)
+                T_other[j] = T_to_ref[a] @ link
+                out.append(ModelDisagreement(model.num_views, a, j, float(e.r_err_deg), t_ref, float(e.s_err),
+                                             T_other))  # fmt: skip
+    return out
+
+
+def model_contest(registration: CrossRenderCheck, model: CrossRenderCheck, config: RegistrationConfig) -> bool:
+    """Whether another model's link, cross-rendered beside the registration's on the same views, refuses the
+    registration: unless it fails the self-check (:func:`passed`) or the registration's link scores better by more than
+    ``known_geometry.ambiguity_margin`` (the rule known geometry chooses between its hypotheses by), the two links are
+    at best ambiguous. A model that linked unrelated content renders unrelated content; a registration that did renders
+    no better than a model that did not."""
+    if not passed(model, config):
+        return False
+    return not (np.isfinite(registration.score)
+                and registration.score - model.score > config.known_geometry.ambiguity_margin)  # fmt: skip
+
+
+def model_failure_line(
+    d: ModelDisagreement, names: Sequence[str], config: RegistrationConfig,
+    nccs: tuple[float, float] | None = None,
+) -> str:
+    """The one-line error of a disagreement that refuses the registration; ``nccs``: the registration's and the other
+    model's cross-render scores (:func:`model_contest`), where they were rendered."""
+    scored = ""
+    if nccs is not None:
+        scored = (f"; cross-rendered on the same views its link scores NCC {nccs[1]:.2f} against the registration's "
+                  f"{nccs[0]:.2f}, not worse by more than {config.known_geometry.ambiguity_margin}")
+    return (
+        f"{names[d.j]}: another SfM model ({d.num_views} views) links it to {names[d.a]} "
+        f"{d.r_err_deg:.1f} deg, {d.t_ref:.3f} reference units and {d.s_err:.3f} in log scale "
+        f"away from the registration's link (the paper's failure rule: 5 deg, 0.2, 0.1){scored}: views the SfM "
+        f"could not join disagree, so it probably merged unrelated content; "
+        f"{suggestion(config.sampling.source)} (or --no-model-check to keep it)"
+    )
+
+
+def model_failure(
+    views: Sequence[ViewSet],
+    sfm: SfMResult,
+    T_to_ref: Float[np.ndarray, "k 4 4"],
+    config: RegistrationConfig,
+    models: Sequence[dict[str, np.ndarray]] | None = None,
+) -> str | None:
+    """The one-line error of the first of :func:`model_disagreements`, unscored, else None (the registration scores
+    each by cross-rendering first: ``pipeline.contest_models``)."""
+    found = model_disagreements(views, sfm, T_to_ref, config, models)
+    return model_failure_line(found[0], [v.name for v in views], config) if found else None
 
 
 LIKELY_CAUSE = {

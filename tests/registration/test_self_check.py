@@ -304,7 +304,7 @@ def _posed(T: np.ndarray, c2w: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize(("offset_deg", "views_b", "fails"),
                          [(0.0, 8, False), (1.0, 8, False), (10.0, 8, True), (10.0, 3, False)])  # fmt: skip
 def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_path, offset_deg, views_b, fails):
-    from nerfuser_ns.registration.self_check import model_failure, model_links
+    from nerfuser_ns.registration.self_check import model_disagreements, model_failure, model_links
 
     rng = np.random.default_rng(3)
     views = []
@@ -329,33 +329,81 @@ def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_pa
         np.testing.assert_allclose(relative, T_to_ref[1], atol=1e-6)
     message = model_failure(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[poses])
     assert (message is not None) == fails
+    found = model_disagreements(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[poses])
+    assert len(found) == fails
+    if fails:  # the other model's link, as transforms the cross-render check scores: a's kept, b's turned
+        (d,) = found
+        np.testing.assert_allclose(d.T_to_ref[0], T_to_ref[0], atol=1e-9)
+        np.testing.assert_allclose(sim3.invert_sim3(d.T_to_ref[0]) @ d.T_to_ref[1],
+                                   wrong @ T_to_ref[1], atol=1e-6)  # fmt: skip
+        assert d.r_err_deg == pytest.approx(10.0, abs=1e-6) and d.s_err == pytest.approx(0.0, abs=1e-9)
     if fails:
         assert message.startswith("b: another SfM model (16 views) links it to a 10.0 deg")
         assert "--no-model-check" in message
     assert model_failure(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[]) is None
 
 
-def test_register_refuses_an_sfm_whose_other_model_links_the_pair_otherwise(oc_renderers, oc_record, work,
-                                                                           monkeypatch, tmp_path, capsys):
+def _other_model_turning(folder: str, T: np.ndarray):
+    """``sfm.other_models`` giving one more model: the same views, those of ``folder`` moved by ``T``."""
+
+    def other_models(sfm):
+        poses = {n: np.asarray(c, dtype=np.float64) for n, c in sfm.c2w.items()}
+        return [{n: _posed(T, G[None])[0] if n.startswith(folder) else G for n, G in poses.items()}]
+
+    return other_models
+
+
+def test_register_keeps_its_link_when_the_other_models_link_renders_worse(oc_renderers, oc_record, work, monkeypatch,
+                                                                          tmp_path, capsys):
     from pathlib import Path
 
     from nerfuser_ns.registration import self_check
 
     folder_b = Path(oc_record["nerfs"][1]["render_folder"]).name
     turned = sim3.make_sim3(Rotation.from_rotvec(np.radians([0.0, 10.0, 0.0])).as_matrix())
-
-    def other_models(sfm):  # one more model: the same views, capture_b's turned 10 deg about the SfM origin
-        poses = {n: np.asarray(c, dtype=np.float64) for n, c in sfm.c2w.items()}
-        return [{n: _posed(turned, G[None])[0] if n.startswith(folder_b) else G for n, G in poses.items()}]
-
-    monkeypatch.setattr(self_check, "other_models", other_models)
+    monkeypatch.setattr(self_check, "other_models", _other_model_turning(folder_b, turned))
     rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work)
-    assert_one_line_error(rc, out, err, "capture_b: another SfM model", "10.0 deg", "--no-model-check")
-    rejected = json.loads((work / "rejected_registration.json").read_text())
-    assert rejected["pairs"][0]["self_check"] is None  # refused before the cross-renders
-    assert "direct" not in rejected  # ... and before the direct alignment's renders
-    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, model_check=False)
     assert rc == 0, err
+    (contest,) = json.loads(out.read_text())["model_check"]["contests"]
+    assert contest["nerfs"] == ["capture_a", "capture_b"] and contest["r_err_deg"] == pytest.approx(10.0, abs=0.5)
+    assert contest["verdict"] == "kept the registration's link"
+    assert contest["registration_ncc"] > contest["model_ncc"] + 0.05  # the turned link renders worse
+
+
+def test_register_refuses_a_link_that_another_model_links_as_well_or_better(oc_renderers, oc_record, work,
+                                                                            monkeypatch, tmp_path, capsys):
+    # the registration's link turned 40 deg (refinement and camera check off, so it stays wrong) and another model
+    # holding the SfM's own poses, which link the pair right
+    from nerfuser_ns.registration import self_check
+
+    perturb_second_estimate(monkeypatch)
+    monkeypatch.setattr(self_check, "other_models", lambda sfm: [dict(sfm.c2w)])
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, refine=False, camera_check=False)
+    assert_one_line_error(rc, out, err, "capture_b: another SfM model", "40.0 deg",
+                          "cross-rendered on the same views its link scores NCC", "--no-model-check")  # fmt: skip
+    rejected = json.loads((work / "rejected_registration.json").read_text())
+    (contest,) = rejected["model_check"]["contests"]
+    assert contest["verdict"] == "refused" and contest["model_ncc"] > contest["registration_ncc"]
+    assert rejected["pairs"][0]["self_check"] is None  # refused before the self-check's own renders
+    assert "direct" not in rejected  # ... and before the direct alignment's
+
+
+@pytest.mark.parametrize(("registration", "model", "depth", "refuses"), [
+    (0.80, 0.30, 0.0, False),  # the other link fails the self-check's NCC threshold
+    (0.80, 0.70, 0.0, False),  # ... or scores clearly worse (by more than the 0.05 margin)
+    (0.80, 0.76, 0.0, True),  # within the margin: ambiguous
+    (0.50, 0.70, 0.0, True),  # the other link renders better
+    (float("nan"), 0.60, 0.0, True),  # the registration's link saw nothing in common
+    (0.50, 0.70, 0.5, False),  # the other link fails the depth check
+])  # fmt: skip
+def test_model_contest_keeps_the_registration_only_when_the_other_link_renders_clearly_worse(registration, model,
+                                                                                             depth, refuses):
+    from nerfuser_ns.registration.self_check import CrossRenderCheck, model_contest
+
+    config = reg.RegistrationConfig()
+    mine = CrossRenderCheck(0, 1, registration, registration, 4)
+    theirs = CrossRenderCheck(0, 1, model, model, 4, depth_i_in_j=depth, depth_j_in_i=0.0)
+    assert model_contest(mine, theirs, config) is refuses
 
 
 def test_tree_edges_run_breadth_first_from_the_reference():
