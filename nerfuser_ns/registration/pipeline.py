@@ -80,6 +80,7 @@ from nerfuser_ns.registration.self_check import (
     model_contest,
     model_disagreements,
     model_failure_line,
+    pair_failure,
     spanning_pairs,
 )
 from nerfuser_ns.registration.sfm import SfMResult, check_registered_views, run_sfm
@@ -514,9 +515,12 @@ def contest_models(
                        verdict="refused" if refuses else "kept the registration's link")  # fmt: skip
         if refuses:
             return model_failure_line(d, names, config, (mine.score, theirs.score)), contests
+        why = pair_failure(theirs, config)
+        why = (f"under its link the {_gist(why)}" if why is not None else
+               f"its link cross-renders at NCC {theirs.score:.2f} against the registration's {mine.score:.2f}, more "
+               f"than {config.known_geometry.ambiguity_margin} below")  # fmt: skip
         console.print(f"model check: another SfM model ({d.num_views} views) links {names[d.j]} to {names[d.a]} "
-                      f"{d.r_err_deg:.1f} deg away, but its link cross-renders at NCC {theirs.score:.2f} against the "
-                      f"registration's {mine.score:.2f} (or fails the self-check): the registration's link kept")
+                      f"{d.r_err_deg:.1f} deg away, but {why}: the registration's link kept")
     return None, contests
 
 
