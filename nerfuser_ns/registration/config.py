@@ -375,8 +375,9 @@ class RegistrationConfig:
     registration's by more than ``known_geometry.ambiguity_margin``: the SfM then linked content that is not the same,
     in one model or the other (measured: a drive pair linked 5.8 deg and 18% in scale wrong, which the self-check
     passed at NCC 0.63, where the other two models were 14 and 23 deg off). A model whose link renders clearly worse
-    merged unrelated content itself, and the registration is kept (unscored refusals of right links, measured: 0.36
-    and 0.42 deg, where the other models were 38 and 13 deg off)."""
+    merged unrelated content itself, and the registration is kept (measured: the rule of refusing on any disagreement
+    refused right links on drive-21 and street-21, whose other models' links score -0.02 and 0.18 against 0.79 and
+    0.76; reports/check_refusals_model_contest.md)."""
     twin_check: bool = False
     """Mode sfm (ours, off by default): before the direct alignment, cross-render the SfM's link of each checked NeRF
     pair against the other SIM(3)s the renders' depth supports (known geometry's hypotheses and each NeRF's own

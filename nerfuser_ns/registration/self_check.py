@@ -532,8 +532,9 @@ def model_failure_line(
     model's cross-render scores (:func:`model_contest`), where they were rendered."""
     scored = ""
     if nccs is not None:
+        within = "" if not nccs[1] < nccs[0] else f", within {config.known_geometry.ambiguity_margin} of it"
         scored = (f"; cross-rendered on the same views its link scores NCC {nccs[1]:.2f} against the registration's "
-                  f"{nccs[0]:.2f}, not worse by more than {config.known_geometry.ambiguity_margin}")
+                  f"{nccs[0]:.2f}{within}")
     return (
         f"{names[d.j]}: another SfM model ({d.num_views} views) links it to {names[d.a]} "
         f"{d.r_err_deg:.1f} deg, {d.t_ref:.3f} reference units and {d.s_err:.3f} in log scale "
