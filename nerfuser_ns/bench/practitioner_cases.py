@@ -317,7 +317,7 @@ REFUSAL_CHECKS = {
     "depth": "cross-render depth check failed",
 }
 """Per check that can refuse a registration: how its line goes on after the NeRF (or pair) it names
-(``self_check.camera_failure``, ``model_failure``, ``pair_failure``), or, the twin check's, how its line begins."""
+(``self_check.camera_failure``, ``model_failure_line``, ``pair_failure``), or, the twin check's, how its line begins."""
 
 
 def refusing_check(line: str) -> str | None:

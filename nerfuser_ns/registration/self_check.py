@@ -418,8 +418,8 @@ def camera_failure(
 
 
 MODEL_CHECK_MIN_VIEWS = 4
-"""Views a NeRF needs in another SfM model for that model's link to count in :func:`model_failure` (fixed before the
-check was first measured)."""
+"""Views a NeRF needs in another SfM model for that model's link to count in :func:`model_disagreements` (fixed
+before the check was first measured)."""
 
 
 @dataclass
@@ -542,19 +542,6 @@ def model_failure_line(
         f"could not join disagree, so it probably merged unrelated content; "
         f"{suggestion(config.sampling.source)} (or --no-model-check to keep it)"
     )
-
-
-def model_failure(
-    views: Sequence[ViewSet],
-    sfm: SfMResult,
-    T_to_ref: Float[np.ndarray, "k 4 4"],
-    config: RegistrationConfig,
-    models: Sequence[dict[str, np.ndarray]] | None = None,
-) -> str | None:
-    """The one-line error of the first of :func:`model_disagreements`, unscored, else None (the registration scores
-    each by cross-rendering first: ``pipeline.contest_models``)."""
-    found = model_disagreements(views, sfm, T_to_ref, config, models)
-    return model_failure_line(found[0], [v.name for v in views], config) if found else None
 
 
 LIKELY_CAUSE = {

@@ -80,7 +80,9 @@ def test_object_centric_two_nerfs_recovers_ground_truth(oc_record):
     assert pair["covisible_points"] > 50
     assert pair["self_check"]["passed"] and pair["self_check"]["ncc"] > 0.9
     assert rec["sfm"]["matching"] == "exhaustive" and sum(rec["sfm"]["models"][0]) >= 36
-    assert set(rec["timings_s"]) == {"render", "features", "matching", "mapping", "solve", "direct", "self_check"}
+    assert set(rec["timings_s"]) == {"render", "features", "matching", "mapping", "solve", "model_check", "direct",
+                                     "self_check"}  # fmt: skip
+    assert "model_check" not in rec  # no other SfM model disagreed: nothing cross-rendered, nothing recorded
     assert rec["settings"]["sampling"]["num_poses"] == 20
 
 

@@ -304,7 +304,7 @@ def _posed(T: np.ndarray, c2w: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize(("offset_deg", "views_b", "fails"),
                          [(0.0, 8, False), (1.0, 8, False), (10.0, 8, True), (10.0, 3, False)])  # fmt: skip
 def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_path, offset_deg, views_b, fails):
-    from nerfuser_ns.registration.self_check import model_disagreements, model_failure, model_links
+    from nerfuser_ns.registration.self_check import model_disagreements, model_failure_line, model_links
 
     rng = np.random.default_rng(3)
     views = []
@@ -327,8 +327,6 @@ def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_pa
     if offset_deg == 0.0 and views_b >= 4:  # the same link as the registration's, in the model's own frame
         relative = sim3.invert_sim3(links.T_to_model[0]) @ links.T_to_model[1]
         np.testing.assert_allclose(relative, T_to_ref[1], atol=1e-6)
-    message = model_failure(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[poses])
-    assert (message is not None) == fails
     found = model_disagreements(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[poses])
     assert len(found) == fails
     if fails:  # the other model's link, as transforms the cross-render check scores: a's kept, b's turned
@@ -338,9 +336,10 @@ def test_the_model_check_refuses_sfm_models_that_link_the_nerfs_otherwise(tmp_pa
                                    wrong @ T_to_ref[1], atol=1e-6)  # fmt: skip
         assert d.r_err_deg == pytest.approx(10.0, abs=1e-6) and d.s_err == pytest.approx(0.0, abs=1e-9)
     if fails:
+        message = model_failure_line(found[0], ["a", "b"], reg.RegistrationConfig())
         assert message.startswith("b: another SfM model (16 views) links it to a 10.0 deg")
-        assert "--no-model-check" in message
-    assert model_failure(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[]) is None
+        assert "--no-model-check" in message and "cross-rendered" not in message  # unscored
+    assert model_disagreements(views, sfm, T_to_ref, reg.RegistrationConfig(), models=[]) == []
 
 
 def _other_model_turning(folder: str, T: np.ndarray):
