@@ -497,6 +497,7 @@ def contest_models(
     names = [r.name for r in renderers]
     contests: list[dict] = []
     scoring = replace(config, colour_views=0)  # the scores alone
+    registration_checks: dict[tuple[int, int], CrossRenderCheck] = {}  # per pair: models disagreeing alike share it
     for d in model_disagreements(views, sfm, T_to_ref, config):
         contest = {"model_views": d.num_views, "nerfs": [names[d.a], names[d.j]], "r_err_deg": json_float(d.r_err_deg),
                    "t_err_reference": json_float(d.t_ref), "s_err": json_float(d.s_err)}  # fmt: skip
@@ -506,7 +507,10 @@ def contest_models(
             return model_failure_line(d, names, config), contests
         with console.status(f"model check: another SfM model links {names[d.j]} to {names[d.a]} otherwise; "
                             "cross-rendering its link beside the registration's"):  # fmt: skip
-            (mine,) = cross_render_check(renderers, views, T_to_ref, [(d.a, d.j)], intr, scoring, order)
+            if (d.a, d.j) not in registration_checks:
+                (registration_checks[(d.a, d.j)],) = cross_render_check(renderers, views, T_to_ref, [(d.a, d.j)],
+                                                                        intr, scoring, order)  # fmt: skip
+            mine = registration_checks[(d.a, d.j)]
             (theirs,) = cross_render_check(renderers, views, d.T_to_ref, [(d.a, d.j)], intr, scoring, order)
         refuses = model_contest(mine, theirs, config)
         contest.update(registration_ncc=json_float(mine.score), model_ncc=json_float(theirs.score),
