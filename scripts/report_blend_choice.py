@@ -23,7 +23,15 @@ import tyro
 
 from nerfuser_ns.bench.practitioner_cases import registered_cameras
 from nerfuser_ns.bench.scenes import benchmark_params, make_layout
-from nerfuser_ns.blend_choice import CENTRE_MISS_DEG, CENTRE_SPREAD, choose_blend_method, looks_at_centre
+from nerfuser_ns.blend_choice import (
+    CENTRE_MISS_DEG,
+    CENTRE_SPREAD,
+    RIG_OFFSET,
+    RIG_TURN_DEG,
+    choose_blend_method,
+    forms_rig,
+    looks_at_centre,
+)
 from nerfuser_ns.coverage import CameraIndex
 from nerfuser_ns.files import write_text_atomic
 
@@ -50,8 +58,10 @@ def _row(case: str, source: str, names: list[str], cameras: list[CameraIndex | N
             cells.append(f"{name}: not recorded")
             continue
         inward, miss, spread = looks_at_centre(c)
+        rig, offset = forms_rig(c)
         measures = "no focus" if miss is None else f"{miss:.1f} deg, R {spread:.2f}"
-        cells.append(f"{name}: {measures}{' (centre)' if inward else ''}")
+        measures += ", rig offset " + ("-" if offset is None else f"{offset:.3f}")
+        cells.append(f"{name}: {measures}{' (centre)' if inward else ''}{' (rig)' if rig else ''}")
     return f"| {case} | {source} | {'; '.join(cells)} | {method} |"
 
 
@@ -73,9 +83,12 @@ def main(cfg: ReportBlendChoice) -> None:
              f"Made by `python scripts/report_blend_choice.py {' '.join(sys.argv[1:])}`. Per NeRF: the median angle "
              "by which its training cameras' optical axes miss their focus of attention, and their spread R around "
              f"it (0: all around, 1: all on one side). A NeRF looks at a centre with at most {CENTRE_MISS_DEG:g} deg "
-             f"and R at most {CENTRE_SPREAD:g}; `auto` renders with IDW-Sample (the paper's) when every NeRF does, "
-             "with coverage (ours) otherwise (`nerfuser_ns/blend_choice.py`).", "",
-             "| case | cameras | per NeRF: median miss angle, spread R | auto |", "| --- | --- | --- | --- |",
+             f"and R at most {CENTRE_SPREAD:g}. The rig offset: the median distance from a camera to the nearest "
+             f"camera turned more than {RIG_TURN_DEG:g} deg from it, over the capture's extent (the median distance "
+             f"of the centres from their mean); the cameras form a rig at {RIG_OFFSET:g} or less. `auto` renders with "
+             "IDW-Sample (the paper's) when every NeRF looks at a centre, with IDW-2D (the paper's) when every NeRF's "
+             "cameras form a rig, with coverage (ours) otherwise (`nerfuser_ns/blend_choice.py`).", "",
+             "| case | cameras | per NeRF: median miss angle, spread R, rig offset | auto |", "| --- | --- | --- | --- |",
              *rows, ""]  # fmt: skip
     write_text_atomic(cfg.report, "\n".join(lines))
     print(f"report: {cfg.report}")

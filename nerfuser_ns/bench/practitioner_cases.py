@@ -18,7 +18,7 @@ from nerfstudio.process_data.process_data_utils import list_images
 
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
-from nerfuser_ns.blend_choice import ALONG_A_PATH, AROUND_OBJECTS, choose_blend_method
+from nerfuser_ns.blend_choice import ALONG_A_PATH, AROUND_OBJECTS, ON_A_RIG, choose_blend_method
 from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset_intrinsics
 from nerfuser_ns.coverage import CameraIndex
 from nerfuser_ns.files import write_text_atomic
@@ -360,14 +360,24 @@ def refusals_scored(records: list[dict]) -> list[Refusal]:
     return out
 
 
+AUTO_RULE = 2
+"""The rule of ``auto`` a record's ``auto_blend`` was made with: 1 chose between IDW-Sample and coverage, 2
+(:mod:`nerfuser_ns.blend_choice` now) takes IDW-2D for rigs."""
+
+AUTO_BY_LAYOUT = {"object-centric": AROUND_OBJECTS, "drive": ON_A_RIG}
+"""What ``auto`` (rule :data:`AUTO_RULE`) gives each generated layout's cameras (:data:`ALONG_A_PATH` for the others;
+``tests/test_blend_choice.py`` checks every layout, ``scripts/report_blend_choice.py`` the registrations on disk)."""
+
+
 def auto_blend_key(record: dict) -> str:
-    """The blend column (:data:`BLEND_COLUMNS`) of the method ``auto`` renders a case with: as the report recorded it
-    (``auto_blend``, from the registration file's training cameras through :mod:`nerfuser_ns.blend_choice`, what the
-    fused model does), or, for a record scored before ``auto`` existed, what its layout's cameras give: IDW-Sample
-    around objects, coverage on every other layout (``tests/test_blend_choice.py`` checks each layout)."""
-    method = (record.get("auto_blend") or {}).get("method")
+    """The blend column (:data:`BLEND_COLUMNS`) of the method ``auto`` renders a case with now: as the report recorded
+    it (``auto_blend``, from the registration file's training cameras through :mod:`nerfuser_ns.blend_choice`, what
+    the fused model does) when it was recorded with the rule in force (:data:`AUTO_RULE`), or else what its layout's
+    cameras give under that rule (:data:`AUTO_BY_LAYOUT`)."""
+    recorded = record.get("auto_blend") or {}
+    method = recorded.get("method") if recorded.get("rule") == AUTO_RULE else None
     if method is None:
-        method = AROUND_OBJECTS if record["spec"].startswith("object-centric:") else ALONG_A_PATH
+        method = AUTO_BY_LAYOUT.get(record["spec"].split(":")[0], ALONG_A_PATH)
     return method.replace("-", "_")
 
 
@@ -391,12 +401,12 @@ def registered_cameras(registration: Path) -> tuple[list[str], list[CameraIndex 
     return [n.name for n in nerfs], cameras
 
 
-def auto_blend_choice(registration: Path) -> dict[str, str]:
+def auto_blend_choice(registration: Path) -> dict[str, str | int]:
     """``{"method", "reason"}``: what ``auto`` renders the NeRFs of a registration file with (their recorded
     training cameras; the verdict does not depend on the frame, so each NeRF's own will do)."""
     names, cameras = registered_cameras(registration)
     method, reason = choose_blend_method(cameras, names)
-    return {"method": method, "reason": reason}
+    return {"method": method, "reason": reason, "rule": AUTO_RULE}
 
 
 @dataclass

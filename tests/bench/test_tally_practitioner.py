@@ -126,8 +126,13 @@ def test_auto_takes_the_recorded_choice_or_the_layouts_and_reads_a_registration_
         r["blend_psnr"].update(coverage=22.5)
     assert with_auto(street)["blend_psnr"]["auto"] == 22.5 and with_auto(obj)["blend_psnr"]["auto"] == 21.0
     assert "auto" not in street["blend_psnr"]  # a copy
-    street["auto_blend"] = {"method": "idw-sample", "reason": "..."}  # what the report recorded wins
+    street["auto_blend"] = {"method": "idw-sample", "reason": "...", "rule": 2}  # what the report recorded wins
     assert with_auto(street)["blend_psnr"]["auto"] == 21.0
+    # ... when recorded under the rule in force; a drive recorded under the first rule (coverage) gets IDW-2D's now
+    drive = _record("drive-1", 0.1)
+    drive["blend_psnr"].update(coverage=22.5, idw_2d=22.7)
+    drive["auto_blend"] = {"method": "coverage", "reason": "..."}
+    assert with_auto(drive)["blend_psnr"]["auto"] == 22.7
     assert with_auto(_record("street-2", None) | {"blend_psnr": None})["blend_psnr"] is None
 
     az = np.linspace(0, 2 * np.pi, 16, endpoint=False)
@@ -147,6 +152,7 @@ def test_auto_takes_the_recorded_choice_or_the_layouts_and_reads_a_registration_
     assert around["method"] == "idw-sample" and "capture_1 0" in around["reason"]
     along = auto_blend_choice(registration(ring, facade))
     assert along["method"] == "coverage" and "not every NeRF's cameras look at a centre" in along["reason"]
+    assert along["rule"] == around["rule"] == 2
 
 
 def _refusal_lines() -> dict[str, str]:
