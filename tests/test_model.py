@@ -249,7 +249,7 @@ def test_coverage_without_cameras_is_idw_sample_with_one_warning(pair):
         assert torch.equal(got[key], want[key]), key
 
 
-def test_auto_renders_idw_sample_for_cameras_around_the_scene_and_coverage_for_cameras_along_a_path(pair):
+def test_auto_renders_idw_sample_around_the_scene_idw_2d_for_a_rig_and_coverage_along_a_path(pair):
     fused, _ = pair
     (a, b), T_b = fused.nerfs.models, fused.nerf_to_common[1].double().numpy()
     to_b = sim3.invert_sim3(T_b)
@@ -257,7 +257,10 @@ def test_auto_renders_idw_sample_for_cameras_around_the_scene_and_coverage_for_c
     around = look_at(np.stack([0.6 * np.cos(az), 0.6 * np.sin(az), np.full(12, 0.3)], axis=-1), np.zeros(3))
     walk = np.stack([np.linspace(-1.0, 1.0, 12), np.full(12, -0.6), np.full(12, 0.1)], axis=-1)
     along = look_at(walk, walk + np.array([0.0, 1.0, 0.0]))  # a walk past a facade
-    for cameras, want in ((around, "idw-sample"), (along, "coverage")):
+    stops = np.repeat(np.stack([np.linspace(-1.0, 1.0, 4), np.full(4, -0.6), np.full(4, 0.1)], axis=-1), 6, axis=0)
+    yaw = np.tile(np.linspace(0, 2 * np.pi, 6, endpoint=False), 4)
+    rig = look_at(stops, stops + np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=-1))  # 6 cameras
+    for cameras, want in ((around, "idw-sample"), (rig, "idw-2d"), (along, "coverage")):
         nerfs = [("a", a, np.eye(4), _cameras(*cameras)), ("b", b, T_b, _cameras(*sim3.transform_poses(to_b, cameras)))]
         auto = fuse_models(nerfs, tau=None)  # the default
         assert (auto.blend_method, auto.active_method) == ("auto", want)
