@@ -30,8 +30,9 @@ camera's walk by where each camera's nearest turned neighbour stands:
 it anyway). Why IDW-2D on a rig: on the drives of the practitioner's path (COLMAP-posed rig captures, stock nerfacto)
 the paper's per-image blend scored above ``coverage`` on 16 of the 19 registered without a failure (+0.08 dB in the
 median, -0.11 to +0.38); there the two NeRFs render a test view alike and an even per-image mix is near the best any
-per-view weight gives (``docs/blending.md``). The rule was written knowing those scores: fresh drives are its test. Angles, the focus and the ratios move with the cameras under a similarity, so the choice
-does not depend on the frame.
+per-view weight gives (``docs/blending.md``). The rule was written knowing those scores: fresh drives are its test.
+Angles, the focus and the ratios move with the cameras under a similarity, so the choice does not depend on the
+frame.
 """
 
 from __future__ import annotations
@@ -71,7 +72,7 @@ RIG_OFFSET = 0.1
 """Largest median distance to the nearest turned camera, over the capture's extent, of a rig (a rig with 0.3 m lever
 arms on a 20 m block: 0.05; a block shorter than ten times its lever arms is taken for a walk). Fixed on the true
 cameras of validation seeds (900-902) of every generated layout and on the COLMAP-posed cameras of the practitioner
-cases on disk, no blend score involved: the drive layout's 8-camera rig 0.000 (true cameras) and 0.002-0.003 (COLMAP);
+cases on disk, no blend score involved: the drive layout's 8-camera rig 0.000 (true cameras) and 0.002-0.004 (COLMAP);
 streets, rooms and row houses 0.17-0.28 (true) and 0.18-0.34 (COLMAP), rings around an object 0.38-0.41. A real rig's
 cameras stand apart by their lever arms, a few per cent of a block's extent."""
 

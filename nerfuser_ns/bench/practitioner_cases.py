@@ -402,8 +402,9 @@ def registered_cameras(registration: Path) -> tuple[list[str], list[CameraIndex 
 
 
 def auto_blend_choice(registration: Path) -> dict[str, str | int]:
-    """``{"method", "reason"}``: what ``auto`` renders the NeRFs of a registration file with (their recorded
-    training cameras; the verdict does not depend on the frame, so each NeRF's own will do)."""
+    """``{"method", "reason", "rule"}``: what ``auto`` (rule :data:`AUTO_RULE`) renders the NeRFs of a registration
+    file with (their recorded training cameras; the verdict does not depend on the frame, so each NeRF's own will
+    do)."""
     names, cameras = registered_cameras(registration)
     method, reason = choose_blend_method(cameras, names)
     return {"method": method, "reason": reason, "rule": AUTO_RULE}
