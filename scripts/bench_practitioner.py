@@ -67,6 +67,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     held_out_evals,
     held_out_fused_config,
     images_done,
+    library_commit,
     register_command,
     registration_with_transforms,
     rejected_registration,
@@ -419,8 +420,7 @@ def stage_register(layout, case_dir: Path) -> None:
         return
     cmd = register_command(layout, case_dir, output)
     log = case_dir / "register.log"
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    write_text_atomic(case_dir / "register_commit.txt", (commit or "unknown") + "\n")
+    write_text_atomic(case_dir / "register_commit.txt", library_commit() + "\n")
     start, started_at = time.perf_counter(), time.time()
     try:
         seconds = _run(cmd, log)

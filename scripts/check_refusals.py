@@ -35,6 +35,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     capture_ground_truth,
     case_layout,
     case_registration,
+    library_commit,
     refusing_check,
     register_command,
 )
@@ -182,14 +183,6 @@ def _errors(T: np.ndarray, T_true: np.ndarray) -> dict:
             "failure": bool(e.is_failure())}  # fmt: skip
 
 
-def _commit() -> str:
-    """This checkout's short commit, ``-dirty`` with uncommitted changes to tracked files."""
-    root = Path(__file__).resolve().parent.parent
-    sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
-    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=root).returncode != 0
-    return sha.stdout.strip() + ("-dirty" if dirty else "")
-
-
 def _worst_link(record: dict, truth: np.ndarray) -> dict:
     """A record's link against the truth: its worst NeRF's errors, ``failure`` where any NeRF's link fails."""
     ref = record["reference"]["index"]
@@ -205,7 +198,7 @@ def measure(spec: str, console: Console, again: bool = False) -> list[Row]:
     truth = sim3.to_reference_frame(
         np.stack([g["nerf_to_world"] for g in capture_ground_truth(layout, case_dir, optimized=False)])
     )
-    commit = _commit() if again else None
+    commit = library_commit() if again else None
     rows = []
     for refusal in refusals(record):
         path, said = _register_again(layout, case_dir, refusal, [refusal["check"]], console)

@@ -88,7 +88,8 @@ def main(cfg: ReportBlendChoice) -> None:
              f"of the centres from their mean); the cameras form a rig at {RIG_OFFSET:g} or less. `auto` renders with "
              "IDW-Sample (the paper's) when every NeRF looks at a centre, with IDW-2D (the paper's) when every NeRF's "
              "cameras form a rig, with coverage (ours) otherwise (`nerfuser_ns/blend_choice.py`).", "",
-             "| case | cameras | per NeRF: median miss angle, spread R, rig offset | auto |", "| --- | --- | --- | --- |",
+             "| case | cameras | per NeRF: median miss angle, spread R, rig offset | auto |",
+             "| --- | --- | --- | --- |",
              *rows, ""]  # fmt: skip
     write_text_atomic(cfg.report, "\n".join(lines))
     print(f"report: {cfg.report}")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from nerfstudio.process_data.process_data_utils import list_images
 
+import nerfuser_ns
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
 from nerfuser_ns.blend_choice import ALONG_A_PATH, AROUND_OBJECTS, ON_A_RIG, choose_blend_method
@@ -358,6 +360,18 @@ def refusals_scored(records: list[dict]) -> list[Refusal]:
                                None if worst is None else worst["r_err_deg"],
                                None if errs is None else any(e["failure"] for e in errs)))  # fmt: skip
     return out
+
+
+def library_commit() -> str:
+    """The short commit of the checkout this library was imported from (``-dirty`` with uncommitted changes to tracked
+    files; ``unknown`` outside a git checkout): what a benchmark's commands run, whatever the current folder (a
+    benchmark run from one checkout with ``PYTHONPATH`` set to another runs the other's library)."""
+    root = Path(nerfuser_ns.__file__).resolve().parent.parent
+    sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
+    if sha.returncode != 0:
+        return "unknown"
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=root, capture_output=True).returncode != 0
+    return sha.stdout.strip() + ("-dirty" if dirty else "")
 
 
 AUTO_RULE = 2

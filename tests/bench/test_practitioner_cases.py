@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 from colmap_helpers import NUM_VIEWS, write_colmap_capture
 
+import nerfuser_ns
 from nerfuser_ns import sim3
 from nerfuser_ns.bench.practitioner_cases import (
     appearance_evals,
@@ -23,6 +25,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     colmap_bend_deg,
     fused_appearance_matching,
     fused_config,
+    library_commit,
     reference_links,
     register_command,
     registration_with_transforms,
@@ -407,3 +410,13 @@ def test_a_checked_case_stops_at_a_fold_the_check_cannot_mend(load_script, tmp_p
     (tmp_path / "capture_check.json").write_text(json.dumps(checks))
     assert bench.unremedied_captures(tmp_path) == ["matches_folded", "reposed_still_folded"]
 
+
+def test_library_commit_names_the_checkout_the_library_came_from_whatever_the_current_folder(tmp_path, monkeypatch):
+    root = Path(nerfuser_ns.__file__).resolve().parent.parent
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
+    monkeypatch.chdir(tmp_path)  # not a checkout: the cwd's HEAD would be none (or another checkout's)
+    got = library_commit()
+    if head.returncode != 0:  # an installed copy outside git
+        assert got == "unknown"
+    else:
+        assert got.removesuffix("-dirty") == head.stdout.strip()

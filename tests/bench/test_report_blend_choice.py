@@ -25,11 +25,11 @@ def test_the_table_has_one_row_per_case_with_each_nerfs_measures(load_script, tm
                                          registrations=[case / "registration.json"]))  # fmt: skip
     rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and "---" not in line][1:]
     assert len(rows) == 2
-    assert rows[0].startswith("| drive-903 | true cameras | capture_0: ") and rows[0].endswith("| coverage |")
-    assert "(centre)" not in rows[0]
+    assert rows[0].startswith("| drive-903 | true cameras | capture_0: ") and rows[0].endswith("| idw-2d |")
+    assert "(centre)" not in rows[0] and rows[0].count("rig offset 0.000 (rig)") == 3  # the drive's rig
     # one NeRF around a centre, the other without recorded cameras: auto falls back to the paper's method
     assert rows[1].startswith("| object-centric-7 | registration file | capture_a: 0.0 deg, R 0.")
-    assert "(centre)" in rows[1]
+    assert "(centre)" in rows[1] and "(rig)" not in rows[1]
     assert "capture_b: not recorded | idw-sample |" in rows[1]
     with pytest.raises(SystemExit, match="missing.json: not a readable registration file"):
         script.main(script.ReportBlendChoice(report=out, registrations=[tmp_path / "missing.json"]))
