@@ -192,4 +192,3 @@ def test_each_checks_refusals_are_judged_by_the_truth_of_the_link_they_refused(t
     assert set(table) == {"camera", "depth"}  # the line no check wrote is no refusal
     assert table["camera"] == "| camera | 3 | 1 | 1 | drive-2: 0.30 | 1 |"
     assert table["depth"] == "| depth | 1 | 0 | 1 | drive-1: 1.90 | 0 |"
-
