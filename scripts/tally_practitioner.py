@@ -131,10 +131,12 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
     columns = [(k, name) for k, name in [*BLEND_COLUMNS, AUTO_COLUMN] if any(k in g for g in gains.values())]
     lines += ["", "Blend methods per layout (PSNR minus IDW-Sample's, dB: median (lowest to highest) over the cases "
               "registered without a failure, and the cases where the method scored highest). *Auto* is the method "
-              "`auto` (ours, the default) renders each case with: coverage where a capture's cameras do not look at "
-              "a centre, IDW-Sample where every one does; as each report recorded it from the registration file, "
-              "or, for the cases scored before `auto` existed, what their layout's cameras give (IDW-Sample around "
-              "objects, coverage on every other layout).", "",
+              "`auto` (ours, the default) renders each case with under its current rule: IDW-Sample where every "
+              "capture's cameras look at a centre, IDW-2D where every capture was filmed by a rig, coverage "
+              "otherwise; as each report recorded it from the registration file when recorded under this rule, else "
+              "what the case's layout's cameras give under it (IDW-Sample around objects, IDW-2D for the drive's "
+              "rig, coverage on every other layout; `reports/blend_choice_rig.md`). Drives run before the rig rule "
+              "rendered with coverage.", "",
               "| layout | " + " | ".join(name for _, name in columns) + " |", "|" + " --- |" * (len(columns) + 1)]
     for layout, g in gains.items():
         if g:
