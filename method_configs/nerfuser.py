@@ -4,7 +4,7 @@
 ``nerfuser_ns.data``), rebuilt from their own config.yml and checkpoints, and writes a normal run folder
 (config.yml, dataparser_transforms.json, a checkpoint without the sub-models' weights) after zero iterations.
 ``ns-render``, ``ns-eval`` and ``ns-viewer`` then load that run like any other; the blend method (``auto`` by
-default: IDW-Sample around objects, coverage along a path), gamma and tau are
+default: IDW-Sample around objects, IDW-2D from a camera rig, coverage along a path), gamma and tau are
 ``--pipeline.model.blend-method/gamma/tau`` at train time, and can be changed at render time (viewer controls, or
 the environment variables NERFUSER_BLEND_METHOD / NERFUSER_GAMMA / NERFUSER_TAU).
 """

@@ -13,8 +13,8 @@ Per ray batch (rays in the COMMON frame):
 3. the NeRFs are blended with the selected method (``nerf``, ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample``; ours:
    ``coverage``, IDW-Sample weighted by each NeRF's training-camera coverage, :mod:`nerfuser_ns.coverage`, and
    ``coverage-3d``, each NeRF's own rendering weighted by that coverage at its surface point), every NeRF keeping its
-   own background term (nerfacto "last_sample"). ``auto`` (ours, the default) is ``idw-sample`` or ``coverage``,
-   chosen once from the training cameras (:mod:`nerfuser_ns.blend_choice`).
+   own background term (nerfacto "last_sample"). ``auto`` (ours, the default) is ``idw-sample``, ``idw-2d`` or
+   ``coverage``, chosen once from the training cameras (:mod:`nerfuser_ns.blend_choice`).
 
 Appearance matching (ours, :mod:`nerfuser_ns.appearance`): each NeRF's sample and background colours go through its
 colour map to the reference capture's colours (from the registration file; identity when absent) before blending, when
@@ -143,7 +143,8 @@ class NerfuserModelConfig(ModelConfig):
     rays already carry nears/fars, they are mapped into each NeRF's frame instead."""
     blend_method: BlendChoice = "auto"
     """``auto`` (ours, the default: ``idw-sample`` when every NeRF's training cameras look at a centre, as around
-    objects, ``coverage`` otherwise, as along a street; see nerfuser_ns.blend_choice), ``nerf`` (one NeRF),
+    objects, ``idw-2d`` when every NeRF was filmed by a camera rig, ``coverage`` otherwise, as along a street; see
+    nerfuser_ns.blend_choice), ``nerf`` (one NeRF),
     ``nearest``, ``idw-2d``, ``idw-3d``, ``idw-sample`` (NeRFuser), ``coverage`` (ours: IDW-Sample weighted by each
     NeRF's training-camera coverage; IDW-Sample when a NeRF's cameras are unknown) or ``coverage-3d`` (ours: each
     NeRF's own rendering weighted by that coverage at its surface point; IDW-2D without the cameras)."""

@@ -60,8 +60,8 @@ class ViewCommand:
     max_res: int | None = None
     """The panel's initial "Max res" (default: 256 on the CPU, nerfstudio's 512 otherwise)."""
     blend_method: BlendChoice | None = None
-    """Initial blend method (default: the run's, or auto: idw-sample around objects, coverage along a path); the
-    panel changes it live."""
+    """Initial blend method (default: the run's, or auto: idw-sample around objects, idw-2d from a camera rig,
+    coverage along a path); the panel changes it live."""
     gamma: float | None = None
     """Initial IDW blending rate (default: the run's, or 5)."""
     tau: float | None = None
