@@ -112,13 +112,16 @@ def miss_angles(c2w: Float[Tensor, "num_cams 3|4 4"]) -> tuple[Float[Tensor, " n
     return torch.rad2deg(torch.acos(cos)), float(unit.mean(dim=0).norm())
 
 
+def _camera_to_world(cameras: CameraIndex) -> Float[Tensor, "num_cams 3 4"]:
+    """An index's cameras as camera-to-world poses, in float64 on the CPU (setup-time work on a few hundred cameras)."""
+    Rt = cameras.w2c.detach().to("cpu", torch.float64)[:, :, :3]
+    return torch.cat([Rt.transpose(-1, -2), cameras.centres.detach().to("cpu", torch.float64)[:, :, None]], dim=-1)
+
+
 def looks_at_centre(cameras: CameraIndex) -> tuple[bool, float | None, float | None]:
     """Whether one NeRF's training cameras look at a centre, their median miss angle (degrees) and their spread ``R``
     around their focus (both None: no focus)."""
-    w2c = cameras.w2c.detach().to("cpu", torch.float64)
-    Rt = w2c[:, :, :3]
-    c2w = torch.cat([Rt.transpose(-1, -2), cameras.centres.detach().to("cpu", torch.float64)[:, :, None]], dim=-1)
-    found = miss_angles(c2w)
+    found = miss_angles(_camera_to_world(cameras))
     if found is None:
         return False, None, None
     median, spread = float(found[0].median()), found[1]
@@ -149,10 +152,7 @@ def rig_offsets(c2w: Float[Tensor, "num_cams 3|4 4"]) -> Float[Tensor, " num_cam
 
 def forms_rig(cameras: CameraIndex) -> tuple[bool, float | None]:
     """Whether one NeRF's training cameras form a rig, and the median of :func:`rig_offsets` (None: undefined)."""
-    w2c = cameras.w2c.detach().to("cpu", torch.float64)
-    c2w = torch.cat([w2c[:, :, :3].transpose(-1, -2), cameras.centres.detach().to("cpu", torch.float64)[:, :, None]],
-                    dim=-1)  # fmt: skip
-    offsets = rig_offsets(c2w)
+    offsets = rig_offsets(_camera_to_world(cameras))
     if offsets is None:
         return False, None
     median = float(offsets.median())
