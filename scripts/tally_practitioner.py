@@ -69,17 +69,22 @@ def refusal_lines(records: list[dict]) -> list[str]:
     lines = ["", "Each check's refusals against the stored truth: every pose source an automatic choice tried before "
              "the one it kept (or refused last) that a check refused, the refused link judged by the paper's rule "
              "(its worst NeRF; a refusal of a failure is right, of a success wrong). A refused case's last refusal "
-             "is not in its record; *unscored*: records written before refused links were kept.", "",
-             "| check | refusals | of failures (right) | of successes (wrong) | the successes (case: r_err deg) | "
-             "unscored |", "|" + " --- |" * 6]  # fmt: skip
+             "is not in its record; *unscored*: records written before refused links were kept. *After a right "
+             "refusal*: what the case kept in the end (the next pose source's link, a success or a failure, or "
+             "nothing); *the successes*: the refused link's r_err, then the kept one's.", "",
+             "| check | refusals | of failures (right) | after a right refusal: success / failure / refused | "
+             "of successes (wrong) | the successes (case: refused -> kept r_err deg) | unscored |",
+             "|" + " --- |" * 7]  # fmt: skip
     for check in REFUSAL_CHECKS:
         found = [r for r in refusals if r.check == check]
         if not found:
             continue
+        right = [r for r in found if r.failure is True]
+        after = " / ".join(str(sum(r.outcome == o for r in right)) for o in ("success", "failure", "refused"))
         wrong = [r for r in found if r.failure is False]
-        lines.append(f"| {check} | {len(found)} | {sum(r.failure is True for r in found)} | {len(wrong)} | "
-                     + ", ".join(f"{r.case}: {r.r_err_deg:.2f}" for r in wrong) + " | "
-                     f"{sum(r.failure is None for r in found)} |")  # fmt: skip
+        lines.append(f"| {check} | {len(found)} | {len(right)} | {after} | {len(wrong)} | "
+                     + ", ".join(f"{r.case}: {r.r_err_deg:.2f} -> {_fmt(r.kept_r_err_deg, 2)}" for r in wrong)
+                     + f" | {sum(r.failure is None for r in found)} |")  # fmt: skip
     return lines
 
 

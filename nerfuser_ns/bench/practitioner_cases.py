@@ -343,6 +343,22 @@ class Refusal:
     """The refused link's worst rotation error over its NeRFs (None: the record kept no solution)."""
     failure: bool | None
     """The refused link fails the paper's rule, so the refusal was right (None: unscored)."""
+    kept_r_err_deg: float | None = None
+    """The worst rotation error of the link the case kept in the end (None: the case was refused)."""
+    kept_failure: bool | None = None
+    """That link fails the paper's rule (None: the case was refused)."""
+
+    @property
+    def outcome(self) -> str:
+        """What the case kept after the refusal: ``success``, ``failure`` or ``refused``."""
+        return "refused" if self.kept_failure is None else "failure" if self.kept_failure else "success"
+
+
+def _worst(errors: list[dict] | None) -> tuple[float | None, bool | None]:
+    """A link's worst rotation error over its NeRFs and whether it fails the paper's rule (None, None: no link)."""
+    if not errors:
+        return None, None
+    return max(e["r_err_deg"] for e in errors), any(e["failure"] for e in errors)
 
 
 def refusals_scored(records: list[dict]) -> list[Refusal]:
@@ -351,14 +367,11 @@ def refusals_scored(records: list[dict]) -> list[Refusal]:
     its line is not in the record."""
     out = []
     for r in records:
+        kept = _worst(r["registration"]["errors"])
         for a in r["registration"].get("attempts") or []:
             if (check := refusing_check(a.get("error", ""))) is None:
                 continue
-            errs = a.get("errors")
-            worst = max(errs, key=lambda e: e["r_err_deg"]) if errs else None
-            out.append(Refusal(r["case"], check, a["source"], a["mode"],
-                               None if worst is None else worst["r_err_deg"],
-                               None if errs is None else any(e["failure"] for e in errs)))  # fmt: skip
+            out.append(Refusal(r["case"], check, a["source"], a["mode"], *_worst(a.get("errors")), *kept))
     return out
 
 

@@ -187,8 +187,11 @@ def test_each_checks_refusals_are_judged_by_the_truth_of_the_link_they_refused(t
     right["registration"]["attempts"] = [attempt("camera", 9.0, failure=True), attempt("depth", 1.9)]
     wrong["registration"]["attempts"] = [attempt("camera", 0.3), attempt("camera", None),
                                          {"source": "both", "mode": "sfm", "error": "a: no views", "errors": None}]
-    table = {line.split(" | ")[0].strip("| "): line for line in tally.refusal_lines([right, wrong]) if
+    failed = _record("drive-3", 6.0, failure=True)  # a right refusal, then a failure kept from the next source
+    failed["registration"]["attempts"] = [attempt("camera", 30.0, failure=True)]
+    table = {line.split(" | ")[0].strip("| "): line for line in tally.refusal_lines([right, wrong, failed]) if
              line.startswith("| ") and not line.startswith(("| check", "| ---"))}  # fmt: skip
     assert set(table) == {"camera", "depth"}  # the line no check wrote is no refusal
-    assert table["camera"] == "| camera | 3 | 1 | 1 | drive-2: 0.30 | 1 |"
-    assert table["depth"] == "| depth | 1 | 0 | 1 | drive-1: 1.90 | 0 |"
+    # after the right refusals: drive-1 kept a success, drive-3 a failure; drive-2's wrong refusal ended refused
+    assert table["camera"] == "| camera | 4 | 2 | 1 / 1 / 0 | 1 | drive-2: 0.30 -> - | 1 |"
+    assert table["depth"] == "| depth | 1 | 0 | 0 / 0 / 0 | 1 | drive-1: 1.90 -> 0.40 | 0 |"
