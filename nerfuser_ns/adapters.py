@@ -146,7 +146,7 @@ def make_adapter(model: Model, name: str | None = None) -> NerfAdapter:
         if cls.supports(model):
             return cls(model)
     message = (f"nerfuser: no adapter for {type(model).__name__}; supported: nerfacto-family models "
-               "(register a NerfAdapter subclass in nerfuser_ns.model.ADAPTERS)")  # fmt: skip
+               "(register a NerfAdapter subclass in nerfuser_ns.adapters.ADAPTERS)")  # fmt: skip
     if name is not None:
         message = f"run {name!r}: {message}; its ray samples cannot be merged with the others'"
     raise UnsupportedRunError(message)

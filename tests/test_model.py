@@ -599,8 +599,9 @@ def test_a_run_whose_samples_cannot_be_merged_is_named(trained):
     class OtherModel(torch.nn.Module):
         pass
 
-    with pytest.raises(TypeError, match="run 'ngp': nerfuser: no adapter for OtherModel"):
+    with pytest.raises(TypeError, match="run 'ngp': nerfuser: no adapter for OtherModel") as e:
         fuse_models([("a", trained.model, np.eye(4)), ("ngp", OtherModel(), np.eye(4))])
+    assert "nerfuser_ns.adapters.ADAPTERS" in str(e.value)  # where the list it names lives
 
 
 ALIKE_KEYS = ("rgb", "accumulation", "expected_depth", "depth")
