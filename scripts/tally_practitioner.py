@@ -88,6 +88,13 @@ def refusal_lines(records: list[dict]) -> list[str]:
     return lines
 
 
+def per_layout(by_layout: dict[str, list[dict]], errors: str) -> list[str]:
+    """One summary line per layout against the truth ``errors`` names, over its cases scored with it (a drive's
+    stored truth leaves the roll about its near-straight path loose; the pose truth fixes it)."""
+    return [f"- {summarise(cases, errors).line(f'{layout}: ')}" for layout, cases in by_layout.items()
+            if any(r["registration"].get(errors) for r in cases)]  # fmt: skip
+
+
 def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
     lines = ["# The practitioner's path: every case in one table", "",
              "Collected by `python scripts/tally_practitioner.py " + " ".join(sys.argv[1:]) + "` from the records "
@@ -128,10 +135,12 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
                  for layout in sorted({r["spec"].rsplit(":", 1)[0] for r in records})}  # fmt: skip
     for layout, cases in by_layout.items():
         lines.append("- " + summarise(cases).line(f"{layout}: "))
-    lines += ["", summarise(records, "errors_optimized").line("Against the camera-optimised truth, ")]
+    lines += ["", summarise(records, "errors_optimized").line("Against the camera-optimised truth, "), "",
+              *per_layout(by_layout, "errors_optimized")]  # fmt: skip
     for key, truth in (("errors_pose", "pose"), ("errors_content", "content")):
         if any(r["registration"].get(key) for r in records):
-            lines += ["", summarise(records, key).line(f"Against the {truth} truth (the cases scored with it), ")]
+            lines += ["", summarise(records, key).line(f"Against the {truth} truth (the cases scored with it), "), "",
+                      *per_layout(by_layout, key)]  # fmt: skip
     gains = {layout: blend_gains(cases) for layout, cases in by_layout.items()}
     columns = [(k, name) for k, name in [*BLEND_COLUMNS, AUTO_COLUMN] if any(k in g for g in gains.values())]
     lines += ["", "Blend methods per layout (PSNR minus IDW-Sample's, dB: median (lowest to highest) over the cases "

@@ -78,6 +78,9 @@ def test_tally_takes_each_case_from_the_last_file_and_summarises_all(tally, tmp_
             "0.0300" in text)  # fmt: skip
     assert ("Against the content truth (the cases scored with it), 1 case(s), 1 registered NeRF(s): median r_err "
             "0.0200" in text)  # fmt: skip
+    # each truth per layout, over the layout's cases scored with it: only the street has the other three truths
+    assert "- street: 1 case(s), 1 registered NeRF(s): median r_err 0.0300 deg" in text
+    assert text.count("- street: 1 case(s)") == 4 and text.count("- object-centric: 1 case(s)") == 1
     assert "[bench_practitioner_b](bench_practitioner_b.md)" in text
     assert "| layout | Nearest | IDW-Sample |" in text
     assert "| street | -1.00 (-1.00 to -1.00); best 0/1 | best 1/1 |" in text
