@@ -61,6 +61,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     case_times,
     colmap_camera,
     colmap_matching,
+    colmap_tie,
     dataset_transforms,
     fused_appearance_matching,
     fused_config,
@@ -369,6 +370,7 @@ def stage_check(layout, case_dir: Path, matching_method: str = "exhaustive", cam
         _check_captures([reposed.parent], case_dir / f"check_capture_{cap.name}_reposed.log", "--write-larger-side")
         checks[cap.name]["reposed"] = {**_check_record(reposed.parent), "camera_type": camera,
                                        "without_views": without_views, "for_drift": drifted}  # fmt: skip
+    write_text_atomic(case_dir / "check_commit.txt", library_commit() + "\n")
     write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
 
 
@@ -668,6 +670,32 @@ def _attempts(choice: dict | None, ref: int, gt: list[dict]) -> list[dict]:
     return out
 
 
+def stopped_record(layout, case_dir: Path, spec: str, stuck: list[str]) -> dict:
+    """The record of a case the capture check stopped before training (``stuck``: :func:`unremedied_captures`): a
+    failure of the guide's path, scored as a refused registration, with what COLMAP made of each capture (the
+    dataset the run would have trained on); no registration or blend exists to score."""
+    record: dict = {"case": case_dir.name, "spec": spec, "case_dir": str(case_dir),
+                    "captures": [colmap_tie(cap, case_dir)[0] for cap in layout.captures],
+                    "registration": {"errors": None, "stopped": f"ns-nerfuser-check-capture found {', '.join(stuck)} "
+                                     "folded with no remedy it can apply; the guide's path stops before training"}}
+    record.update(_provenance(case_dir))
+    commit = case_dir / "check_commit.txt"  # the library that checked the captures (nothing was registered)
+    record["registered_at_commit"] = commit.read_text().strip() if commit.is_file() else None
+    return record
+
+
+def _provenance(case_dir: Path) -> dict:
+    """What every record says of how its case ran: the time of each step, the library that registered it, shared
+    inputs, COLMAP's matching and camera, and what the capture check found."""
+    commit = case_dir / "register_commit.txt"
+    check = case_dir / "capture_check.json"
+    return {"times_s": case_times(case_dir),
+            "registered_at_commit": commit.read_text().strip() if commit.is_file() else None,
+            "captures_from": captures_from(case_dir), "colmap_matching": colmap_matching(case_dir),
+            "colmap_camera": colmap_camera(case_dir),
+            "capture_check": json.loads(check.read_text()) if check.is_file() else None}  # fmt: skip
+
+
 def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     """The case's record for the reports; ``gt``: :func:`capture_ground_truth` of the case."""
     captures = [{k: v for k, v in g.items() if not k.startswith("nerf_to_world")} for g in gt]
@@ -739,14 +767,7 @@ def score_case(layout, case_dir: Path, spec: str, gt: list[dict]) -> dict:
     if cost.is_file():
         record["cost"] = {m: {k: c[k] for k in ("ratio", "ratio_used", "fused_s", "sub_used_s", "used_rays")}
                           for m, c in json.loads(cost.read_text()).items()}  # fmt: skip
-    record["times_s"] = case_times(case_dir)
-    commit = case_dir / "register_commit.txt"
-    record["registered_at_commit"] = commit.read_text().strip() if commit.is_file() else None
-    record["captures_from"] = captures_from(case_dir)
-    record["colmap_matching"] = colmap_matching(case_dir)
-    record["colmap_camera"] = colmap_camera(case_dir)
-    check = case_dir / "capture_check.json"
-    record["capture_check"] = json.loads(check.read_text()) if check.is_file() else None
+    record.update(_provenance(case_dir))
     return record
 
 
@@ -891,7 +912,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         bend = ", ".join(f"{c['colmap_bend_deg']:.2f}" for c in colmap)
         errs = r["registration"]["errors"]
         if errs is None:
-            lines.append(f"| {r['case']} | - | refused | | | FAIL | {col} | {cen} | {bend} | {posed} |")
+            verdict = "stopped before training" if r["registration"].get("stopped") else "refused"
+            lines.append(f"| {r['case']} | - | {verdict} | | | FAIL | {col} | {cen} | {bend} | {posed} |")
             for e in r["registration"].get("rejected_errors") or []:
                 lines.append(f"| {r['case']} (the refused solution, mode {r['registration']['rejected_mode']}) | "
                              f"{_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | {e['s_err']:.5f} | "
@@ -932,6 +954,9 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         choice = r["registration"].get("sampling_choice") or {}
         # records scored before attempts were: as the registration recorded them (no solutions kept then)
         attempts = r["registration"].get("attempts") or choice.get("tried_before", [])
+        if r["registration"].get("stopped"):
+            lines.append(f"- {r['case']}: nothing registered ({r['registration']['stopped']})")
+            continue
         lines.append(f"- {r['case']}: {choice.get('source', '-')} ({choice.get('reason', 'no registration')}); "
                      f"tried before: {[{k: v for k, v in a.items() if k != 'errors'} for a in attempts]}")
         for a in attempts:
@@ -1213,11 +1238,15 @@ def main(cfg: BenchPractitioner) -> None:
                 stage_colmap(layout, case_dir, cfg.matching_method, cfg.camera_type)
             if cfg.check_captures and "train" in cfg.stages:
                 stage_check(layout, case_dir, cfg.matching_method, cfg.camera_type)
-                if stuck := unremedied_captures(case_dir):
-                    CONSOLE.print(f"[yellow]{case}: ns-nerfuser-check-capture found {', '.join(stuck)} folded with no "
-                                  "remedy it can apply (no side free of the fold, too many views to leave out; see "
-                                  f"{case_dir / 'check_capture.log'}); the guide's path stops before training here[/]")
-                    continue
+        if cfg.check_captures and (case_dir / "capture_check.json").is_file() and (
+                stuck := unremedied_captures(case_dir)):  # fmt: skip
+            CONSOLE.print(f"[yellow]{case}: ns-nerfuser-check-capture found {', '.join(stuck)} folded with no remedy "
+                          "it can apply (no side free of the fold, too many views to leave out; see "
+                          f"{case_dir / 'check_capture.log'}); the guide's path stops before training here: scored "
+                          "as a failure[/]")  # fmt: skip
+            records.append(stopped_record(layout, case_dir, case, stuck))
+            continue
+        if not cfg.report_only:
             if "train" in cfg.stages:
                 stage_train(layout, case_dir, cfg)
             if "register" in cfg.stages:

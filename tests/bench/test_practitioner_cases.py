@@ -411,6 +411,34 @@ def test_a_checked_case_stops_at_a_fold_the_check_cannot_mend(load_script, tmp_p
     assert bench.unremedied_captures(tmp_path) == ["matches_folded", "reposed_still_folded"]
 
 
+def test_a_case_stopped_at_the_check_is_reported_and_tallied_as_a_failure(load_script, tmp_path):
+    """A case the check stops before training is still a case of the guide's path: its record says so, with what
+    COLMAP made of each capture, the report shows it, and the tally counts it as a failed link."""
+    bench, tally = load_script("bench_practitioner"), load_script("tally_practitioner")
+    layout = case_layout("street:1")
+    for cap, folded in zip(layout.captures, (False, True), strict=True):
+        data = write_colmap_capture(tmp_path / "datasets" / cap.name, folded=folded)
+        transforms = data / "transforms.json"
+        meta = json.loads(transforms.read_text())
+        for i, frame in enumerate(meta["frames"]):  # posed at the truth: the tie itself is not under test
+            frame["transform_matrix"] = cap.c2w_world[i].tolist()
+        transforms.write_text(json.dumps(meta))
+    (tmp_path / "check_commit.txt").write_text("abc1234\n")
+    record = bench.stopped_record(layout, tmp_path, "street:1", ["capture_1"])
+    assert record["registration"]["errors"] is None and "capture_1 folded" in record["registration"]["stopped"]
+    assert record["registered_at_commit"] == "abc1234"
+    assert [c["match_check_folded"] for c in record["captures"]] == [False, True]
+    report = tmp_path / "report.md"
+    bench.write_report([record], report, bench.BenchPractitioner(cases=["street:1"], root=tmp_path))
+    text = report.read_text()
+    assert f"| {tmp_path.name} | - | stopped before training | | | FAIL |" in text
+    assert "nothing registered (ns-nerfuser-check-capture found capture_1 folded" in text
+    assert "success rate 0.00" in text
+    tallied = tmp_path / "tally.md"
+    tally.write_tally(tally.collect([report.with_suffix(".json")]), tallied)
+    assert f"| {tmp_path.name} | stopped before training | | | FAIL |" in tallied.read_text()
+
+
 def test_library_commit_names_the_checkout_the_library_came_from_whatever_the_current_folder(tmp_path, monkeypatch):
     root = Path(nerfuser_ns.__file__).resolve().parent.parent
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
