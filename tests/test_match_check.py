@@ -134,6 +134,13 @@ def test_cli_reports_a_fold_of_unordered_views_and_exits_1(consistent, folded, c
     out = capsys.readouterr().out
     assert "does not explain" in out and "views in the most unexplained pairs: frame_" in out
     assert cli.POSE_AGAIN_ADVICE in " ".join(out.split())
+    assert cli.ONE_FOCAL_ADVICE in " ".join(out.split())  # posed with one focal length: another camera to try
+    transforms = folded / "transforms.json"
+    meta = json.loads(transforms.read_text())
+    transforms.write_text(json.dumps({**meta, "fl_y": meta["fl_x"] * 1.001}))  # a focal length per axis
+    assert cli.run(cli.CheckCaptureCommand([folded])) == 1
+    out = " ".join(capsys.readouterr().out.split())
+    assert cli.POSE_AGAIN_ADVICE in out and cli.ONE_FOCAL_ADVICE not in out
 
 
 def test_the_check_says_when_colmap_compared_only_some_pairs(consistent, tmp_path, capsys):

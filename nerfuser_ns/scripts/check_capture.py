@@ -39,6 +39,7 @@ from nerfuser_ns.capture_check import (
     REPOSE_FOLDER_NAME,
     SEQUENCE_STEP_DEG,
     SQUARE_PIXEL_ADVICE,
+    IntrinsicsCheck,
     check_dataset,
     check_dataset_intrinsics,
     dataset_file,
@@ -59,6 +60,13 @@ POSE_AGAIN_ADVICE = (
 )
 """What is left for a capture the matches show folded with no side to train on and no few views to leave out, with
 what posing again did on our captures (``reports/colmap_fold_check.md``, ``reports/repose_in_order_street20.md``)."""
+ONE_FOCAL_ADVICE = (
+    "It was posed with one focal length (fy = fx); COLMAP's SIMPLE_RADIAL camera is another posing to try (the recipe "
+    "in nerfuser_ns's docs/your_own_captures.md): on one of our drives a capture posed again with ns-process-data's "
+    "simple_pinhole camera came out folded, and with SIMPLE_RADIAL consistent"
+)
+"""Added to :data:`POSE_AGAIN_ADVICE` for a capture posed with one focal length (``reports/colmap_quality_drive25.md``:
+one case, so offered as a try)."""
 
 
 @dataclass
@@ -92,7 +100,7 @@ class CheckCaptureCommand:
                 if (out := dataset_file(path).parent / REPOSE_FOLDER_NAME).exists():
                     raise ValueError(f"{out}: already exists (an earlier check wrote it?); remove it to write it again")
         for path, check, camera, matches in checks:
-            if _report_matches(path, matches):
+            if _report_matches(path, matches, camera):
                 found = True
             camera_warning = camera.warning(str(path))
             if camera_warning is not None:
@@ -147,7 +155,7 @@ class CheckCaptureCommand:
                       f"--data {out} --output-dir <a new folder>, check that folder, and train on it")  # fmt: skip
 
 
-def _report_matches(path: Path, matches: MatchCheck) -> bool:
+def _report_matches(path: Path, matches: MatchCheck, camera: IntrinsicsCheck) -> bool:
     """Print the match check's verdict (:mod:`nerfuser_ns.match_check`); True when the capture looks folded."""
     if not matches.checked:
         CONSOLE.print(f"{path}: matches not checked: {matches.reason}")
@@ -175,6 +183,8 @@ def _report_matches(path: Path, matches: MatchCheck) -> bool:
                       "run trained on these poses cannot be registered correctly")  # fmt: skip
         return True  # what to do follows (CheckCaptureCommand._repose)
     CONSOLE.print(f"  {POSE_AGAIN_ADVICE}; a run trained on these poses cannot be registered correctly")
+    if camera.intrinsics.fx == camera.intrinsics.fy:  # exactly: a camera model with one focal length
+        CONSOLE.print(f"  {ONE_FOCAL_ADVICE}")
     return True
 
 
