@@ -80,6 +80,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     test_transforms,
     training_transforms,
     truth_evals,
+    unregistered_verdict,
     with_auto,
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
@@ -678,16 +679,14 @@ def stopped_record(layout, case_dir: Path, spec: str, stuck: list[str]) -> dict:
                     "captures": [colmap_tie(cap, case_dir)[0] for cap in layout.captures],
                     "registration": {"errors": None, "stopped": f"ns-nerfuser-check-capture found {', '.join(stuck)} "
                                      "folded with no remedy it can apply; the guide's path stops before training"}}
-    record.update(_provenance(case_dir))
-    commit = case_dir / "check_commit.txt"  # the library that checked the captures (nothing was registered)
-    record["registered_at_commit"] = commit.read_text().strip() if commit.is_file() else None
+    record.update(_provenance(case_dir, "check_commit.txt"))  # the library that checked: nothing was registered
     return record
 
 
-def _provenance(case_dir: Path) -> dict:
-    """What every record says of how its case ran: the time of each step, the library that registered it, shared
-    inputs, COLMAP's matching and camera, and what the capture check found."""
-    commit = case_dir / "register_commit.txt"
+def _provenance(case_dir: Path, commit_file: str = "register_commit.txt") -> dict:
+    """What every record says of how its case ran: the time of each step, the library that registered it (named in
+    ``commit_file``), shared inputs, COLMAP's matching and camera, and what the capture check found."""
+    commit = case_dir / commit_file
     check = case_dir / "capture_check.json"
     return {"times_s": case_times(case_dir),
             "registered_at_commit": commit.read_text().strip() if commit.is_file() else None,
@@ -912,8 +911,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
         bend = ", ".join(f"{c['colmap_bend_deg']:.2f}" for c in colmap)
         errs = r["registration"]["errors"]
         if errs is None:
-            verdict = "stopped before training" if r["registration"].get("stopped") else "refused"
-            lines.append(f"| {r['case']} | - | {verdict} | | | FAIL | {col} | {cen} | {bend} | {posed} |")
+            lines.append(f"| {r['case']} | - | {unregistered_verdict(r['registration'])} | | | FAIL | {col} | {cen} | "
+                         f"{bend} | {posed} |")  # fmt: skip
             for e in r["registration"].get("rejected_errors") or []:
                 lines.append(f"| {r['case']} (the refused solution, mode {r['registration']['rejected_mode']}) | "
                              f"{_short(e['nerf'])} | {e['r_err_deg']:.4f} | {e['t_err']:.5f} | {e['s_err']:.5f} | "

@@ -26,6 +26,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     blend_gains,
     refusals_scored,
     summarise,
+    unregistered_verdict,
 )
 from nerfuser_ns.files import write_text_atomic
 
@@ -118,8 +119,8 @@ def write_tally(rows: list[tuple[dict, Path]], path: Path) -> None:
         link = f"[{src.stem}]({src.with_suffix('.md').name})"
         errs = r["registration"]["errors"]
         if errs is None:
-            verdict = "stopped before training" if r["registration"].get("stopped") else "refused"
-            lines.append(f"| {r['case']} | {verdict} | | | FAIL | {' | '.join('-' for _ in OTHER_TRUTHS)} | "
+            lines.append(f"| {r['case']} | {unregistered_verdict(r['registration'])} | | | FAIL | "
+                         f"{' | '.join('-' for _ in OTHER_TRUTHS)} | "
                          f"{noise:.3f} | {bend:.2f} | - | - | {r.get('registered_at_commit')} | {link} |")  # fmt: skip
             continue
         other = [{e["nerf"]: e["r_err_deg"] for e in r["registration"].get(key) or []} for key in OTHER_TRUTHS]

@@ -331,6 +331,11 @@ def refusing_check(line: str) -> str | None:
     return next((c for c, start in REFUSAL_CHECKS.items() if c != "twin" and rest.startswith(start)), None)
 
 
+def unregistered_verdict(registration: dict) -> str:
+    """How a report names a case with no registration: stopped before training by the capture check, or refused."""
+    return "stopped before training" if registration.get("stopped") else "refused"
+
+
 @dataclass(frozen=True)
 class Refusal:
     """One pose source a check refused in a case, scored against the stored truth where the record kept it."""
