@@ -69,6 +69,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     held_out_fused_config,
     images_done,
     library_commit,
+    radial_transforms,
     register_command,
     registration_with_transforms,
     rejected_registration,
@@ -182,9 +183,10 @@ class BenchPractitioner:
     """Before training, run ``ns-nerfuser-check-capture --write-larger-side --write-images-to-repose`` on each
     capture's COLMAP dataset and follow its advice as a user would: a capture it finds folded trains on its larger
     side, one with a few misposed views is posed again without them, one whose camera drifted is posed again with one
-    focal length (:func:`stage_check`). A folded capture it finds no remedy for (no side free of the fold, too many
-    views to leave out) stops the case before training: the check then advises posing it again, which is a user's
-    choice, not a rule. Case folders get the suffix ``-checked``."""
+    focal length, and one it then finds folded with one focal length and no side is posed once more by the guide's
+    SIMPLE_RADIAL recipe (:func:`stage_check`). A folded capture it finds no remedy for (no side free of the fold,
+    too many views to leave out, no SIMPLE_RADIAL posing left to try) stops the case before training: the check then
+    advises posing it again, which is a user's choice, not a rule. Case folders get the suffix ``-checked``."""
     share_captures: bool = True
     """Before the ``scene`` stage of a case folder with no images yet, copy the images, COLMAP datasets and test views
     of the same case trained the other way (the other ``--camera-optimizer`` folder), when that folder has them all:
@@ -344,11 +346,18 @@ def stage_check(layout, case_dir: Path, matching_method: str = "exhaustive", cam
     every capture's dataset (exit 1 means a capture is folded or drifted: expected, not an error), then its advice
     followed: a capture whose check named a few misposed views is posed again without them, and a capture whose
     camera drifted is posed again with one focal length (``--camera-type simple_pinhole``, every view, or every view
-    but the named ones where both apply), each as the first time into :func:`reposed_transforms`, and checked again.
-    What it found goes to ``capture_check.json``."""
+    but the named ones where both apply), each as the first time into :func:`reposed_transforms`, and checked again;
+    a capture then folded with one focal length and no side is posed once more by the SIMPLE_RADIAL recipe
+    (:func:`stage_radial`). What it found goes to ``capture_check.json``."""
     out = case_dir / "capture_check.json"
-    if out.is_file():
-        return
+    if not out.is_file():
+        _check_and_repose(layout, case_dir, matching_method, camera_type)
+    stage_radial(layout, case_dir, matching_method)
+
+
+def _check_and_repose(layout, case_dir: Path, matching_method: str, camera_type: str) -> None:
+    """:func:`stage_check`'s first check and the re-posing it advises, into ``capture_check.json``."""
+    out = case_dir / "capture_check.json"
     datasets = [dataset_transforms(case_dir, cap.name).parent for cap in layout.captures]
     for d in datasets:  # an interrupted check's copy: written again from the same dataset
         shutil.rmtree(d / REPOSE_FOLDER_NAME, ignore_errors=True)
@@ -375,15 +384,74 @@ def stage_check(layout, case_dir: Path, matching_method: str = "exhaustive", cam
     write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
 
 
+def stage_radial(layout, case_dir: Path, matching_method: str = "exhaustive") -> None:
+    """The check's advice for a capture it found folded with no side to train on, posed with one focal length
+    (``ONE_FOCAL_ADVICE`` of ``ns-nerfuser-check-capture``): pose it once more by the user's guide's SIMPLE_RADIAL
+    recipe (:func:`_process_data_radial`) from the images that posing read, into :func:`radial_transforms`, and check
+    it again (``--write-larger-side``); what the check found goes to ``capture_check.json``'s ``radial``. Runs once per
+    capture, also on a case checked before this step existed."""
+    out = case_dir / "capture_check.json"
+    checks = json.loads(out.read_text())
+    for cap in layout.captures:
+        found = checks[cap.name]
+        again = found.get("reposed")
+        dataset = dataset_transforms(case_dir, cap.name)
+        if "radial" in found or not _stuck(found if again is None else again):
+            continue
+        camera = check_dataset_intrinsics(dataset if again is None else reposed_transforms(case_dir, cap.name))
+        if camera.intrinsics.fx != camera.intrinsics.fy:  # exactly: the check's test for one focal length
+            continue
+        without_views = again is not None and again.get("without_views", True)
+        images = dataset.parent / REPOSE_FOLDER_NAME if without_views else images_done(case_dir, cap.name).parent
+        radial = radial_transforms(case_dir, cap.name)
+        if not radial.is_file():
+            CONSOLE.print(f"{case_dir.name}: {cap.name} is folded with one focal length and no side to train on; "
+                          "posing it once more by the guide's SIMPLE_RADIAL recipe, as the check advises")  # fmt: skip
+            shutil.rmtree(radial.parent, ignore_errors=True)  # an interrupted posing's leftovers
+            seconds = _process_data_radial(images, radial, matching_method, case_dir / f"colmap_{cap.name}_radial.log")
+            _add_time(case_dir, f"colmap {cap.name} radial", seconds)
+        if without_views:
+            write_text_atomic(radial.parent / SOURCE_FRAMES_NAME, json.dumps(source_frames(images), indent=1) + "\n")
+        _check_captures([radial.parent], case_dir / f"check_capture_{cap.name}_radial.log", "--write-larger-side")
+        found["radial"] = {**_check_record(radial.parent), "without_views": without_views}
+        write_text_atomic(out, json.dumps(checks, indent=2) + "\n")
+
+
+def _process_data_radial(images: Path, out: Path, matching_method: str, log: Path) -> float:
+    """The user's guide's SIMPLE_RADIAL recipe on ``images`` into ``out``'s folder (COLMAP's feature extractor with one
+    SIMPLE_RADIAL camera, its matcher and mapper, CPU SIFT; then ``ns-process-data images --skip-colmap``); its time.
+    Each step's output goes to a log beside ``log``."""
+    data = out.parent
+    database, sparse = data / "colmap" / "database.db", data / "colmap" / "sparse"
+    sparse.mkdir(parents=True, exist_ok=True)
+    steps = {
+        "features": ["colmap", "feature_extractor", "--database_path", str(database), "--image_path", str(images),
+                     "--ImageReader.camera_model", "SIMPLE_RADIAL", "--ImageReader.single_camera", "1",
+                     "--SiftExtraction.use_gpu", "0"],
+        "matches": ["colmap", f"{matching_method}_matcher", "--database_path", str(database),
+                    "--SiftMatching.use_gpu", "0"],
+        "mapper": ["colmap", "mapper", "--database_path", str(database), "--image_path", str(images),
+                   "--output_path", str(sparse)],
+        "process_data": [str(BIN / "ns-process-data"), "images", "--data", str(images), "--output-dir", str(data),
+                         "--skip-colmap", "--num-downscales", "0"],
+    }  # fmt: skip
+    seconds = sum(_run(cmd, log.with_name(f"{log.stem}_{step}.log")) for step, cmd in steps.items())
+    if not out.is_file():
+        raise RuntimeError(f"ns-process-data wrote no transforms.json from {sparse / '0'}: COLMAP posed nothing")
+    return seconds
+
+
+def _stuck(found: dict) -> bool:
+    """Whether a check record (``capture_check.json``) found the capture folded with no larger side to train on."""
+    return (found["folded"] or found["matches"]["folded"]) and found["larger_side"] is None
+
+
 def unremedied_captures(case_dir: Path) -> list[str]:
-    """The captures :func:`stage_check` found folded (by file order or by COLMAP's matches; after their re-posing where
-    there was one) with no larger side to train on: a run trained on them cannot be registered correctly."""
-    stuck = []
-    for name, found in json.loads((case_dir / "capture_check.json").read_text()).items():
-        found = found.get("reposed", found)
-        if (found["folded"] or found["matches"]["folded"]) and found["larger_side"] is None:
-            stuck.append(name)
-    return stuck
+    """The captures :func:`stage_check` found folded (by file order or by COLMAP's matches; after their last posing,
+    where the check's advice led to one) with no larger side to train on: a run trained on them cannot be registered
+    correctly."""
+    checks = json.loads((case_dir / "capture_check.json").read_text())
+    return [name for name, found in checks.items() if _stuck(found.get("radial", found.get("reposed", found)))]
 
 
 def _check_captures(datasets: list[Path], log: Path, *options: str) -> None:
@@ -795,6 +863,9 @@ def _posed_cell(c: dict) -> str:
     if "reposed_posed_by_colmap" in c:
         extra.append(f"posed again as the check advised: {c['reposed_posed_by_colmap']} posed, "
                      f"{c['reposed_misposed_views']} misposed")  # fmt: skip
+    if "radial_posed_by_colmap" in c:
+        extra.append(f"posed by the SIMPLE_RADIAL recipe: {c['radial_posed_by_colmap']} posed, "
+                     f"{c['radial_misposed_views']} misposed")  # fmt: skip
     if c.get("trained_views", c["posed_by_colmap"]) != c["posed_by_colmap"]:
         extra.append(f"trained on {c['trained_views']}")
     return cell + (f" ({'; '.join(extra)})" if extra else "")
@@ -810,7 +881,7 @@ def _capture_check_cell(c: dict) -> str:
     side = c.get("larger_side")
     if side is not None:
         dropped = f"folded (by the {side.get('found_by', 'file order')}), {len(side['dropped'])} of {c['num_views']}"
-        return (f"{dropped} views on its smaller side{drift}{_reposed_cell(c)}" if reposed
+        return (f"{dropped} views on its smaller side{drift}{_reposed_cell(c)}{_radial_cell(c)}" if reposed
                 else f"{dropped} views dropped, trained on the larger side{drift}")  # fmt: skip
     # records of before the match check: the stage wrote the larger side of every capture the file order folded
     trained = ", trained on the larger side" if "larger_side" not in c else ""
@@ -819,14 +890,14 @@ def _capture_check_cell(c: dict) -> str:
              else "not folded by file order")  # fmt: skip
     matches = c.get("matches")
     if not matches or not matches["checked"]:
-        return order + drift + _reposed_cell(c)
+        return order + drift + _reposed_cell(c) + _radial_cell(c)
     if matches.get("repose_without") and reposed:
         verdict = f"; the match check named {', '.join(matches['repose_without'])} in every unexplained pair"
     elif matches["folded"]:
         verdict = "; folded by the match check, no sides" + ("" if reposed else " to train on: trained on every view")
     else:
         verdict = "; the match check found it consistent"
-    return order + verdict + drift + _reposed_cell(c)
+    return order + verdict + drift + _reposed_cell(c) + _radial_cell(c)
 
 
 def _reposed_cell(c: dict) -> str:
@@ -837,10 +908,22 @@ def _reposed_cell(c: dict) -> str:
     how = ["without those views"] if again.get("without_views", True) else []
     if again.get("for_drift", False):
         how.append("with one focal length (--camera-type simple_pinhole)")
-    m = again["matches"]
+    return f": posed again {' and '.join(how)}, then {_verdict_cell(again)}"
+
+
+def _radial_cell(c: dict) -> str:
+    """How a capture folded with one focal length was posed once more (``capture_check.json``'s ``radial``)."""
+    again = c.get("radial")
+    return "" if again is None else f"; posed once more by the SIMPLE_RADIAL recipe, then {_verdict_cell(again)}"
+
+
+def _verdict_cell(found: dict) -> str:
+    """What the match check said of a posing the check's advice led to, and the larger side trained on if any."""
+    m = found["matches"]
     verdict = ("folded again" if m["folded"] else "consistent") if m["checked"] else "not checked"
-    return (f": posed again {' and '.join(how)}, then {verdict} by the match check "
-            f"({m['unexplained_pairs']} of {m['pairs']} pairs unexplained)")
+    side = found.get("larger_side")
+    trained = "" if side is None else f", {len(side['dropped'])} views dropped, trained on the larger side"
+    return f"{verdict} by the match check ({m['unexplained_pairs']} of {m['pairs']} pairs unexplained){trained}"
 
 
 def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> None:

@@ -193,17 +193,25 @@ def reposed_transforms(case_dir: Path, capture: str) -> Path:
     return case_dir / "datasets" / f"{capture}_reposed" / "transforms.json"
 
 
+def radial_transforms(case_dir: Path, capture: str) -> Path:
+    """A capture posed once more by the user's guide's SIMPLE_RADIAL recipe (COLMAP run by hand with one focal length
+    and one radial term, then ``ns-process-data --skip-colmap``), where the check found it folded, posed with one focal
+    length and with no side to train on: the checked case's ``check`` stage writes it."""
+    return case_dir / "datasets" / f"{capture}_radial" / "transforms.json"
+
+
 SOURCE_FRAMES_NAME = "source_frames.json"
 """In a re-posed dataset: its image names -> the first dataset's names of the same images (``ns-process-data``
 numbers its inputs afresh, and a view left out shifts the numbers after it)."""
 
 
 def training_transforms(case_dir: Path, capture: str) -> Path:
-    """The transforms file a capture's run trains on: the capture posed again where the check named views to leave
-    out (:func:`reposed_transforms`), else the COLMAP dataset; of that, the larger side of a folded capture where
-    ``ns-nerfuser-check-capture --write-larger-side`` wrote one."""
-    reposed = reposed_transforms(case_dir, capture)
-    dataset = reposed if reposed.is_file() else dataset_transforms(case_dir, capture)
+    """The transforms file a capture's run trains on: the last posing the check's advice led to (the SIMPLE_RADIAL
+    recipe's, :func:`radial_transforms`, else the capture posed again, :func:`reposed_transforms`), else the COLMAP
+    dataset; of that, the larger side of a folded capture where ``ns-nerfuser-check-capture --write-larger-side``
+    wrote one."""
+    posings = (radial_transforms(case_dir, capture), reposed_transforms(case_dir, capture))
+    dataset = next((p for p in posings if p.is_file()), dataset_transforms(case_dir, capture))
     larger = dataset.with_name(LARGER_SIDE_NAME)
     return larger if larger.is_file() else dataset
 
@@ -558,6 +566,11 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
         again = colmap_misposed(cap, case_dir, reposed)
         record["reposed_posed_by_colmap"] = len(again)
         record["reposed_misposed_views"] = sum(again.values())
+    radial = radial_transforms(case_dir, cap.name)
+    if radial.is_file():  # posed once more by the SIMPLE_RADIAL recipe
+        again = colmap_misposed(cap, case_dir, radial)
+        record["radial_posed_by_colmap"] = len(again)
+        record["radial_misposed_views"] = sum(again.values())
     matches = check_dataset_matches(dataset_transforms(case_dir, cap.name))
     if matches.checked:  # the fold check the user's guide runs before training (ns-nerfuser-check-capture)
         record["match_check_pairs"] = matches.pairs

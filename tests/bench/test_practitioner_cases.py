@@ -26,6 +26,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     fused_appearance_matching,
     fused_config,
     library_commit,
+    radial_transforms,
     reference_links,
     register_command,
     registration_with_transforms,
@@ -392,6 +393,51 @@ def test_the_guides_check_poses_a_drifted_capture_again_with_one_focal_length(lo
     assert len(posed) == 1
 
 
+def test_the_guides_check_poses_a_capture_folded_with_one_focal_length_by_the_simple_radial_recipe(
+    load_script, tmp_path, monkeypatch
+):
+    """``--check-captures`` follows the check's one-focal-length advice (drive-25): a drifted capture posed again with
+    one focal length comes out folded with no side to train on, so it is posed once more by the guide's SIMPLE_RADIAL
+    recipe from the same images, checked again and trained on; the case is not stopped. A capture folded with two
+    focal lengths gets no such posing, and stays stuck."""
+    bench = load_script("bench_practitioner")
+    layout = case_layout("street:1")
+    for cap, aspect in zip(layout.captures, (1.2, 1.002), strict=True):  # capture_1: two focal lengths, no drift
+        data = write_colmap_capture(tmp_path / "datasets" / cap.name, folded=cap.name == "capture_1")
+        meta = json.loads((data / "transforms.json").read_text())
+        (data / "transforms.json").write_text(json.dumps({**meta, "fl_y": meta["fl_x"] * aspect}))
+        done = bench.images_done(tmp_path, cap.name)
+        done.parent.mkdir(parents=True)
+        done.write_text("")
+
+    def folded_again(images, out, matching_method, camera_type, log):
+        write_colmap_capture(out.parent, folded=True)  # one focal length (fl_x = fl_y), folded, no side
+        return 3.0
+
+    radial = []
+
+    def radial_recipe(images, out, matching_method, log):
+        radial.append((images, out, matching_method))
+        write_colmap_capture(out.parent, folded=False)
+        return 4.0
+
+    monkeypatch.setattr(bench, "_process_data", folded_again)
+    monkeypatch.setattr(bench, "_process_data_radial", radial_recipe)
+    bench.stage_check(layout, tmp_path, "sequential", "perspective")
+    assert radial == [(tmp_path / "images" / "capture_0", radial_transforms(tmp_path, "capture_0"), "sequential")]
+    checks = json.loads((tmp_path / "capture_check.json").read_text())
+    assert checks["capture_0"]["reposed"]["matches"]["folded"] and checks["capture_0"]["reposed"]["larger_side"] is None
+    assert not checks["capture_0"]["radial"]["matches"]["folded"] and "radial" not in checks["capture_1"]
+    assert training_transforms(tmp_path, "capture_0") == radial_transforms(tmp_path, "capture_0")
+    assert json.loads((tmp_path / "times.json").read_text())["colmap capture_0 radial"] == 4.0
+    assert bench.unremedied_captures(tmp_path) == ["capture_1"]  # folded, not drifted, two focal lengths
+    assert "posed once more by the SIMPLE_RADIAL recipe, then consistent by the match check" in \
+        bench._capture_check_cell(checks["capture_0"])
+    # done once, also when the case is checked again
+    bench.stage_check(layout, tmp_path, "sequential", "perspective")
+    assert len(radial) == 1
+
+
 def test_a_checked_case_stops_at_a_fold_the_check_cannot_mend(load_script, tmp_path):
     """--check-captures trains a folded capture's larger side, or its re-posed dataset; a capture folded with neither
     stops the case before training (street-20's capture_0: 5.1% of its pairs unexplained, no side, no views to drop)."""
@@ -406,9 +452,11 @@ def test_a_checked_case_stops_at_a_fold_the_check_cannot_mend(load_script, tmp_p
         "matches_folded": found(matches_folded=True),
         "reposed_clean": {**found(matches_folded=True), "reposed": found()},
         "reposed_still_folded": {**found(), "reposed": found(folded=True)},
+        "radial_clean": {**found(), "reposed": found(folded=True), "radial": found()},
+        "radial_still_folded": {**found(matches_folded=True), "radial": found(matches_folded=True)},
     }
     (tmp_path / "capture_check.json").write_text(json.dumps(checks))
-    assert bench.unremedied_captures(tmp_path) == ["matches_folded", "reposed_still_folded"]
+    assert bench.unremedied_captures(tmp_path) == ["matches_folded", "reposed_still_folded", "radial_still_folded"]
 
 
 def test_a_case_stopped_at_the_check_is_reported_and_tallied_as_a_failure(load_script, tmp_path):
