@@ -438,6 +438,38 @@ def test_the_guides_check_poses_a_capture_folded_with_one_focal_length_by_the_si
     assert len(radial) == 1
 
 
+def test_the_simple_radial_recipe_runs_the_guides_commands(load_script, tmp_path, monkeypatch):
+    """The benchmark's SIMPLE_RADIAL posing is the guide's recipe: COLMAP's feature extractor with one SIMPLE_RADIAL
+    camera, the case's matcher and the mapper on CPU SIFT, then ``ns-process-data --skip-colmap`` into the same folder;
+    each step logged on its own, and an error when nothing was posed."""
+    bench = load_script("bench_practitioner")
+    calls = []
+
+    def run(cmd, log, cwd=None):
+        calls.append((cmd, log.name))
+        if cmd[1] == "images":  # ns-process-data writes the dataset
+            (Path(cmd[cmd.index("--output-dir") + 1]) / "transforms.json").write_text("{}")
+        return 1.0
+
+    monkeypatch.setattr(bench, "_run", run)
+    out = tmp_path / "capture_0_radial" / "transforms.json"
+    assert bench._process_data_radial(tmp_path / "images", out, "sequential", tmp_path / "colmap_radial.log") == 4.0
+    tools = [" ".join(cmd[:2]) if cmd[0] == "colmap" else Path(cmd[0]).name for cmd, _ in calls]
+    assert tools == ["colmap feature_extractor", "colmap sequential_matcher", "colmap mapper", "ns-process-data"]
+    features, matcher, mapper, process = (cmd for cmd, _ in calls)
+    assert features[features.index("--ImageReader.camera_model") + 1] == "SIMPLE_RADIAL"
+    assert features[features.index("--ImageReader.single_camera") + 1] == "1"
+    assert features[features.index("--SiftExtraction.use_gpu") + 1] == "0"
+    assert matcher[-2:] == ["--SiftMatching.use_gpu", "0"]
+    assert mapper[mapper.index("--output_path") + 1] == str(out.parent / "colmap" / "sparse")
+    assert "--skip-colmap" in process and process[process.index("--output-dir") + 1] == str(out.parent)
+    assert len({log for _, log in calls}) == 4
+    monkeypatch.setattr(bench, "_run", lambda cmd, log, cwd=None: 1.0)  # COLMAP posed nothing: no dataset
+    with pytest.raises(RuntimeError, match="COLMAP posed nothing"):
+        bench._process_data_radial(tmp_path / "images", tmp_path / "other" / "transforms.json", "exhaustive",
+                                   tmp_path / "colmap_other.log")  # fmt: skip
+
+
 def test_a_checked_case_stops_at_a_fold_the_check_cannot_mend(load_script, tmp_path):
     """--check-captures trains a folded capture's larger side, or its re-posed dataset; a capture folded with neither
     stops the case before training (street-20's capture_0: 5.1% of its pairs unexplained, no side, no views to drop)."""
