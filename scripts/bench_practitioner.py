@@ -860,12 +860,10 @@ def _posed_cell(c: dict) -> str:
     where they are recorded and differ from the posed ones."""
     cell = f"{c['posed_by_colmap']}/{c['views']}"
     extra = [f"{c['pose_tie_misposed_views']} misposed"] if c.get("pose_tie_misposed_views") else []
-    if "reposed_posed_by_colmap" in c:
-        extra.append(f"posed again as the check advised: {c['reposed_posed_by_colmap']} posed, "
-                     f"{c['reposed_misposed_views']} misposed")  # fmt: skip
-    if "radial_posed_by_colmap" in c:
-        extra.append(f"posed by the SIMPLE_RADIAL recipe: {c['radial_posed_by_colmap']} posed, "
-                     f"{c['radial_misposed_views']} misposed")  # fmt: skip
+    for label, how in (("reposed", "posed again as the check advised"),
+                       ("radial", "posed by the SIMPLE_RADIAL recipe")):  # fmt: skip
+        if f"{label}_posed_by_colmap" in c:
+            extra.append(f"{how}: {c[f'{label}_posed_by_colmap']} posed, {c[f'{label}_misposed_views']} misposed")
     if c.get("trained_views", c["posed_by_colmap"]) != c["posed_by_colmap"]:
         extra.append(f"trained on {c['trained_views']}")
     return cell + (f" ({'; '.join(extra)})" if extra else "")

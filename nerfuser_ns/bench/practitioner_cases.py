@@ -561,16 +561,13 @@ def colmap_tie(cap, case_dir: Path) -> tuple[dict, np.ndarray, np.ndarray, float
         "pose_tie_rot_err_deg_median": pose_rot_err,
         "pose_tie_misposed_views": sum(misposed.values()),
     }
-    reposed = reposed_transforms(case_dir, cap.name)
-    if reposed.is_file():  # posed again without the views the match check named
-        again = colmap_misposed(cap, case_dir, reposed)
-        record["reposed_posed_by_colmap"] = len(again)
-        record["reposed_misposed_views"] = sum(again.values())
-    radial = radial_transforms(case_dir, cap.name)
-    if radial.is_file():  # posed once more by the SIMPLE_RADIAL recipe
-        again = colmap_misposed(cap, case_dir, radial)
-        record["radial_posed_by_colmap"] = len(again)
-        record["radial_misposed_views"] = sum(again.values())
+    # the posings the check's advice led to: again (without named views or with one focal length), SIMPLE_RADIAL
+    for label, posing in (("reposed", reposed_transforms(case_dir, cap.name)),
+                          ("radial", radial_transforms(case_dir, cap.name))):  # fmt: skip
+        if posing.is_file():
+            again = colmap_misposed(cap, case_dir, posing)
+            record[f"{label}_posed_by_colmap"] = len(again)
+            record[f"{label}_misposed_views"] = sum(again.values())
     matches = check_dataset_matches(dataset_transforms(case_dir, cap.name))
     if matches.checked:  # the fold check the user's guide runs before training (ns-nerfuser-check-capture)
         record["match_check_pairs"] = matches.pairs
