@@ -311,6 +311,12 @@ class IntrinsicsCheck:
     def drifted(self) -> bool:
         return aspect_drifted(self.aspect)
 
+    @property
+    def one_focal_length(self) -> bool:
+        """Whether the camera model has one focal length (fy = fx exactly: ``simple_pinhole``, SIMPLE_RADIAL), as
+        opposed to square pixels measured by a model with two."""
+        return self.intrinsics.fx == self.intrinsics.fy
+
     def warning(self, subject: str) -> str | None:
         """One line for a drifted camera naming ``subject`` (a run or a dataset); None otherwise."""
         if not self.drifted:

@@ -398,8 +398,8 @@ def stage_radial(layout, case_dir: Path, matching_method: str = "exhaustive") ->
         dataset = dataset_transforms(case_dir, cap.name)
         if "radial" in found or not _stuck(found if again is None else again):
             continue
-        camera = check_dataset_intrinsics(dataset if again is None else reposed_transforms(case_dir, cap.name))
-        if camera.intrinsics.fx != camera.intrinsics.fy:  # exactly: the check's test for one focal length
+        last = dataset if again is None else reposed_transforms(case_dir, cap.name)
+        if not check_dataset_intrinsics(last).one_focal_length:  # the check's advice is for one focal length
             continue
         without_views = again is not None and again.get("without_views", True)
         images = dataset.parent / REPOSE_FOLDER_NAME if without_views else images_done(case_dir, cap.name).parent

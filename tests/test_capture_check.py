@@ -278,6 +278,10 @@ def test_square_pixels_pass_and_a_drifted_focal_ratio_is_reported():
     assert not intrinsics_check(Intrinsics(100.0, 100.0 * edge - 1e-6, 50, 50, 100, 100)).drifted
     assert intrinsics_check(Intrinsics(100.0, 100.0 / (edge + 1e-3), 50, 50, 100, 100)).drifted  # either way
     assert drifted.to_record()["drifted"] and drifted.to_record()["aspect"] == pytest.approx(352.9 / 250.5, abs=1e-4)
+    # one focal length means a model with one (fy = fx exactly), not square pixels measured by a model with two
+    assert intrinsics_check(Intrinsics(251.2, 251.2, 160.0, 120.0, 320, 240)).one_focal_length
+    assert not square.one_focal_length
+    assert not intrinsics_check(Intrinsics(250.0, 250.0 + 1e-9, 0, 0, 1, 1)).one_focal_length
     with pytest.raises(ValueError, match="must be positive"):
         intrinsics_check(Intrinsics(0.0, 1.0, 0, 0, 1, 1))
 

@@ -183,7 +183,7 @@ def _report_matches(path: Path, matches: MatchCheck, camera: IntrinsicsCheck) ->
                       "run trained on these poses cannot be registered correctly")  # fmt: skip
         return True  # what to do follows (CheckCaptureCommand._repose)
     CONSOLE.print(f"  {POSE_AGAIN_ADVICE}; a run trained on these poses cannot be registered correctly")
-    if camera.intrinsics.fx == camera.intrinsics.fy:  # exactly: a camera model with one focal length
+    if camera.one_focal_length:
         CONSOLE.print(f"  {ONE_FOCAL_ADVICE}")
     return True
 
