@@ -879,7 +879,7 @@ def _capture_check_cell(c: dict) -> str:
     side = c.get("larger_side")
     if side is not None:
         dropped = f"folded (by the {side.get('found_by', 'file order')}), {len(side['dropped'])} of {c['num_views']}"
-        return (f"{dropped} views on its smaller side{drift}{_reposed_cell(c)}{_radial_cell(c)}" if reposed
+        return (f"{dropped} views on its smaller side{drift}{_reposed_cell(c)}" if reposed
                 else f"{dropped} views dropped, trained on the larger side{drift}")  # fmt: skip
     # records of before the match check: the stage wrote the larger side of every capture the file order folded
     trained = ", trained on the larger side" if "larger_side" not in c else ""
@@ -888,25 +888,26 @@ def _capture_check_cell(c: dict) -> str:
              else "not folded by file order")  # fmt: skip
     matches = c.get("matches")
     if not matches or not matches["checked"]:
-        return order + drift + _reposed_cell(c) + _radial_cell(c)
+        return order + drift + _reposed_cell(c)
     if matches.get("repose_without") and reposed:
         verdict = f"; the match check named {', '.join(matches['repose_without'])} in every unexplained pair"
     elif matches["folded"]:
         verdict = "; folded by the match check, no sides" + ("" if reposed else " to train on: trained on every view")
     else:
         verdict = "; the match check found it consistent"
-    return order + verdict + drift + _reposed_cell(c) + _radial_cell(c)
+    return order + verdict + drift + _reposed_cell(c)
 
 
 def _reposed_cell(c: dict) -> str:
-    """How a checked capture was posed again (``capture_check.json``'s ``reposed``), and what the check said then."""
+    """How a checked capture was posed again (``capture_check.json``'s ``reposed``) and once more by the SIMPLE_RADIAL
+    recipe (its ``radial``), and what the check said of each."""
     again = c.get("reposed")
     if again is None:
-        return ""
+        return _radial_cell(c)
     how = ["without those views"] if again.get("without_views", True) else []
     if again.get("for_drift", False):
         how.append("with one focal length (--camera-type simple_pinhole)")
-    return f": posed again {' and '.join(how)}, then {_verdict_cell(again)}"
+    return f": posed again {' and '.join(how)}, then {_verdict_cell(again)}" + _radial_cell(c)
 
 
 def _radial_cell(c: dict) -> str:
