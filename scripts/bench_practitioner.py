@@ -396,7 +396,7 @@ def stage_radial(layout, case_dir: Path, matching_method: str = "exhaustive") ->
         found = checks[cap.name]
         again = found.get("reposed")
         dataset = dataset_transforms(case_dir, cap.name)
-        if "radial" in found or not _stuck(found if again is None else again):
+        if "radial" in found or not _stuck(_last_check(found)):
             continue
         last = dataset if again is None else reposed_transforms(case_dir, cap.name)
         if not check_dataset_intrinsics(last).one_focal_length:  # the check's advice is for one focal length
@@ -441,6 +441,12 @@ def _process_data_radial(images: Path, out: Path, matching_method: str, log: Pat
     return seconds
 
 
+def _last_check(found: dict) -> dict:
+    """A capture's check record (``capture_check.json``) after its last posing: the SIMPLE_RADIAL one, else the
+    re-posing, else the first."""
+    return found.get("radial", found.get("reposed", found))
+
+
 def _stuck(found: dict) -> bool:
     """Whether a check record (``capture_check.json``) found the capture folded with no larger side to train on."""
     return (found["folded"] or found["matches"]["folded"]) and found["larger_side"] is None
@@ -451,7 +457,7 @@ def unremedied_captures(case_dir: Path) -> list[str]:
     where the check's advice led to one) with no larger side to train on: a run trained on them cannot be registered
     correctly."""
     checks = json.loads((case_dir / "capture_check.json").read_text())
-    return [name for name, found in checks.items() if _stuck(found.get("radial", found.get("reposed", found)))]
+    return [name for name, found in checks.items() if _stuck(_last_check(found))]
 
 
 def _check_captures(datasets: list[Path], log: Path, *options: str) -> None:
