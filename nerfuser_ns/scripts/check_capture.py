@@ -62,11 +62,11 @@ POSE_AGAIN_ADVICE = (
 what posing again did on our captures (``reports/colmap_fold_check.md``, ``reports/repose_in_order_street20.md``)."""
 ONE_FOCAL_ADVICE = (
     "It was posed with one focal length (fy = fx); COLMAP's SIMPLE_RADIAL camera is another posing to try (the recipe "
-    "in nerfuser_ns's docs/your_own_captures.md): on one of our drives a capture posed again with ns-process-data's "
+    "in nerfuser_ns's docs/your_own_captures.md): on two of our drives a capture posed again with ns-process-data's "
     "simple_pinhole camera came out folded, and with SIMPLE_RADIAL consistent"
 )
-"""Added to :data:`POSE_AGAIN_ADVICE` for a capture posed with one focal length (``reports/colmap_quality_drive25.md``:
-one case, so offered as a try)."""
+"""Added to :data:`POSE_AGAIN_ADVICE` for a capture posed with one focal length (``reports/colmap_quality_drive25.md``,
+``reports/bench_practitioner_drive28_checked.md``: two cases, so offered as a try)."""
 
 
 @dataclass
