@@ -74,6 +74,8 @@ SQUARE_PIXEL_ADVICE = (
     "--skip-colmap: nerfuser_ns's docs/your_own_captures.md), and check again"
 )
 """What to do about a capture whose intrinsics drifted."""
+RADIAL_FOLDER_SUFFIX = "_radial"
+"""The SIMPLE_RADIAL posing's dataset goes beside the capture's, named as it with this suffix."""
 REPOSE_FOLDER_NAME = "images_to_repose"
 """Where ``ns-nerfuser-check-capture --write-images-to-repose`` copies a capture's images but its few misposed views
 (beside its transforms.json), to be posed again by ``ns-process-data images``."""
@@ -266,6 +268,32 @@ def dataset_file(path: Path | str) -> Path:
     if not file.is_file():
         raise ValueError(f"{path}: no transforms.json (give an ns-process-data output folder or its transforms.json)")
     return file
+
+
+def simple_radial_recipe(
+    images: Path, output_dir: Path, matching_method: str = "exhaustive", use_gpu: bool = True,
+    ns_process_data: str = "ns-process-data", num_downscales: int | None = None,
+) -> dict[str, list[str]]:
+    """The posing ``ns-nerfuser-check-capture`` offers a capture folded with one focal length: COLMAP's feature
+    extractor with one SIMPLE_RADIAL camera (one focal length, one radial term) shared by every image of ``images``,
+    its ``{matching_method}_matcher`` and mapper into ``output_dir/colmap``, then ``ns-process-data images
+    --skip-colmap`` writing the dataset into ``output_dir`` from that model (``ns-process-data`` offers no camera
+    with one focal length and lens distortion). Each step's command by name, in order; ``output_dir/colmap/sparse``
+    must exist before the mapper runs. ``use_gpu=False`` runs SIFT on the CPU (COLMAP built without CUDA)."""
+    database, sparse = output_dir / "colmap" / "database.db", output_dir / "colmap" / "sparse"
+    cpu_extraction = [] if use_gpu else ["--SiftExtraction.use_gpu", "0"]
+    cpu_matching = [] if use_gpu else ["--SiftMatching.use_gpu", "0"]
+    downscales = [] if num_downscales is None else ["--num-downscales", str(num_downscales)]
+    return {
+        "features": ["colmap", "feature_extractor", "--database_path", str(database), "--image_path", str(images),
+                     "--ImageReader.camera_model", "SIMPLE_RADIAL", "--ImageReader.single_camera", "1",
+                     *cpu_extraction],
+        "matches": ["colmap", f"{matching_method}_matcher", "--database_path", str(database), *cpu_matching],
+        "mapper": ["colmap", "mapper", "--database_path", str(database), "--image_path", str(images),
+                   "--output_path", str(sparse)],
+        "process_data": [ns_process_data, "images", "--data", str(images), "--output-dir", str(output_dir),
+                         "--skip-colmap", *downscales],
+    }  # fmt: skip
 
 
 def path_suffixes(file_path: str) -> set[str]:

@@ -86,7 +86,13 @@ from nerfuser_ns.bench.practitioner_cases import (
 )
 from nerfuser_ns.bench.scene_renderer import SceneFrameRenderer
 from nerfuser_ns.bench.scenes import apply_appearance, render, to_uint8, write_capture
-from nerfuser_ns.capture_check import LARGER_SIDE_NAME, REPOSE_FOLDER_NAME, check_dataset, check_dataset_intrinsics
+from nerfuser_ns.capture_check import (
+    LARGER_SIDE_NAME,
+    REPOSE_FOLDER_NAME,
+    check_dataset,
+    check_dataset_intrinsics,
+    simple_radial_recipe,
+)
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.match_check import check_dataset_matches
 from nerfuser_ns.registration import RegistrationConfig, RegistrationFailed, read_registration
@@ -418,23 +424,13 @@ def stage_radial(layout, case_dir: Path, matching_method: str = "exhaustive") ->
 
 
 def _process_data_radial(images: Path, out: Path, matching_method: str, log: Path) -> float:
-    """The user's guide's SIMPLE_RADIAL recipe on ``images`` into ``out``'s folder (COLMAP's feature extractor with one
-    SIMPLE_RADIAL camera, its matcher and mapper, CPU SIFT; then ``ns-process-data images --skip-colmap``); its time.
+    """The check's SIMPLE_RADIAL recipe (``capture_check.simple_radial_recipe``, the commands the check prints) on
+    ``images`` into ``out``'s folder, with CPU SIFT and no downscaled copies as the benchmark's other posings; its time.
     Each step's output goes to a log beside ``log``."""
-    data = out.parent
-    database, sparse = data / "colmap" / "database.db", data / "colmap" / "sparse"
+    sparse = out.parent / "colmap" / "sparse"
     sparse.mkdir(parents=True, exist_ok=True)
-    steps = {
-        "features": ["colmap", "feature_extractor", "--database_path", str(database), "--image_path", str(images),
-                     "--ImageReader.camera_model", "SIMPLE_RADIAL", "--ImageReader.single_camera", "1",
-                     "--SiftExtraction.use_gpu", "0"],
-        "matches": ["colmap", f"{matching_method}_matcher", "--database_path", str(database),
-                    "--SiftMatching.use_gpu", "0"],
-        "mapper": ["colmap", "mapper", "--database_path", str(database), "--image_path", str(images),
-                   "--output_path", str(sparse)],
-        "process_data": [str(BIN / "ns-process-data"), "images", "--data", str(images), "--output-dir", str(data),
-                         "--skip-colmap", "--num-downscales", "0"],
-    }  # fmt: skip
+    steps = simple_radial_recipe(images, out.parent, matching_method, use_gpu=False,
+                                 ns_process_data=str(BIN / "ns-process-data"), num_downscales=0)  # fmt: skip
     seconds = sum(_run(cmd, log.with_name(f"{log.stem}_{step}.log")) for step, cmd in steps.items())
     if not out.is_file():
         raise RuntimeError(f"ns-process-data wrote no transforms.json from {sparse / '0'}: COLMAP posed nothing")

@@ -22,6 +22,7 @@ from nerfuser_ns.capture_check import (
     fold_check,
     intrinsics_check,
     neighbour_turns,
+    simple_radial_recipe,
     write_larger_side,
 )
 from nerfuser_ns.registration.pipeline import check_captures
@@ -284,6 +285,31 @@ def test_square_pixels_pass_and_a_drifted_focal_ratio_is_reported():
     assert not intrinsics_check(Intrinsics(250.0, 250.0 + 1e-9, 0, 0, 1, 1)).one_focal_length
     with pytest.raises(ValueError, match="must be positive"):
         intrinsics_check(Intrinsics(0.0, 1.0, 0, 0, 1, 1))
+
+
+def test_the_simple_radial_recipe_poses_every_image_with_one_distorted_camera():
+    """The check's SIMPLE_RADIAL posing: one SIMPLE_RADIAL camera shared by every image, matcher and mapper into the new
+    dataset's colmap folder, then ns-process-data writing the dataset from that model; CPU SIFT only when asked."""
+    images, out = Path("data/east/images"), Path("data/east_radial")
+    steps = simple_radial_recipe(images, out)
+    assert list(steps) == ["features", "matches", "mapper", "process_data"]
+    features, matcher, mapper, process = steps.values()
+    assert features[:2] == ["colmap", "feature_extractor"] and matcher[:2] == ["colmap", "exhaustive_matcher"]
+    assert features[features.index("--ImageReader.camera_model") + 1] == "SIMPLE_RADIAL"
+    assert features[features.index("--ImageReader.single_camera") + 1] == "1"
+    assert features[features.index("--image_path") + 1] == mapper[mapper.index("--image_path") + 1] == str(images)
+    database = str(out / "colmap" / "database.db")
+    assert {cmd[cmd.index("--database_path") + 1] for cmd in (features, matcher, mapper)} == {database}
+    assert mapper[mapper.index("--output_path") + 1] == str(out / "colmap" / "sparse")
+    assert process[:2] == ["ns-process-data", "images"] and "--skip-colmap" in process
+    assert process[process.index("--output-dir") + 1] == str(out) and "--num-downscales" not in process
+    assert not any("use_gpu" in arg for cmd in steps.values() for arg in cmd)  # COLMAP's default: its GPU
+    cpu = simple_radial_recipe(images, out, "sequential", use_gpu=False, ns_process_data="/venv/bin/ns-process-data",
+                               num_downscales=0)  # fmt: skip
+    assert cpu["features"][-2:] == ["--SiftExtraction.use_gpu", "0"] and cpu["matches"][1] == "sequential_matcher"
+    assert cpu["matches"][-2:] == ["--SiftMatching.use_gpu", "0"]
+    assert cpu["process_data"][0] == "/venv/bin/ns-process-data"
+    assert cpu["process_data"][-2:] == ["--num-downscales", "0"]
 
 
 def test_dataset_camera_per_frame_overrides_the_file(room_poses, tmp_path):

@@ -135,6 +135,13 @@ def test_cli_reports_a_fold_of_unordered_views_and_exits_1(consistent, folded, c
     assert "does not explain" in out and "views in the most unexplained pairs: frame_" in out
     assert cli.POSE_AGAIN_ADVICE in " ".join(out.split())
     assert cli.ONE_FOCAL_ADVICE in " ".join(out.split())  # posed with one focal length: another camera to try
+    # the recipe with this capture's paths, to copy: its images into a new dataset beside it, then checked
+    recipe = [line.strip() for line in out.splitlines() if line.startswith("    ")]
+    radial = folded.with_name("folded_radial")
+    assert recipe == cli.radial_recipe_lines(folded) and recipe[-1] == f"ns-nerfuser-check-capture {radial}"
+    assert f"--image_path {folded / 'images'} --ImageReader.camera_model SIMPLE_RADIAL" in recipe[1]
+    assert recipe[0] == f"mkdir -p {radial / 'colmap' / 'sparse'}"
+    assert f"--output-dir {radial} --skip-colmap" in recipe[4]
     transforms = folded / "transforms.json"
     meta = json.loads(transforms.read_text())
     transforms.write_text(json.dumps({**meta, "fl_y": meta["fl_x"] * 1.001}))  # a focal length per axis

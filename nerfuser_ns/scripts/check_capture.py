@@ -24,6 +24,8 @@ geometry: it is reported with what to run instead.
 from __future__ import annotations
 
 import json
+import os
+import shlex
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +38,7 @@ from nerfuser_ns.capture_check import (
     FOLD_TURN_DEG,
     LARGER_SIDE_NAME,
     MAX_RIG_CAMERAS,
+    RADIAL_FOLDER_SUFFIX,
     REPOSE_FOLDER_NAME,
     SEQUENCE_STEP_DEG,
     SQUARE_PIXEL_ADVICE,
@@ -43,6 +46,7 @@ from nerfuser_ns.capture_check import (
     check_dataset,
     check_dataset_intrinsics,
     dataset_file,
+    simple_radial_recipe,
     write_larger_side,
     write_repose_images,
 )
@@ -184,8 +188,24 @@ def _report_matches(path: Path, matches: MatchCheck, camera: IntrinsicsCheck) ->
         return True  # what to do follows (CheckCaptureCommand._repose)
     CONSOLE.print(f"  {POSE_AGAIN_ADVICE}; a run trained on these poses cannot be registered correctly")
     if camera.one_focal_length:
-        CONSOLE.print(f"  {ONE_FOCAL_ADVICE}")
+        CONSOLE.print(f"  {ONE_FOCAL_ADVICE}. For this capture (without CUDA add --SiftExtraction.use_gpu 0 and "
+                      "--SiftMatching.use_gpu 0; the images are the dataset's copies):")  # fmt: skip
+        for line in radial_recipe_lines(path):
+            CONSOLE.print(f"    {line}", markup=False, highlight=False)
     return True
+
+
+def radial_recipe_lines(path: Path) -> list[str]:
+    """:data:`ONE_FOCAL_ADVICE`'s recipe for the dataset at ``path`` as shell lines: the images its frames name (the
+    copies ``ns-process-data`` made) posed into a new dataset beside it, named with :data:`RADIAL_FOLDER_SUFFIX`,
+    then checked."""
+    file = dataset_file(path)
+    frames = json.loads(file.read_text())["frames"]
+    images = Path(os.path.commonpath([(file.parent / f["file_path"]).parent for f in frames]))
+    out = file.parent.with_name(file.parent.name + RADIAL_FOLDER_SUFFIX)
+    return [shlex.join(["mkdir", "-p", str(out / "colmap" / "sparse")]),
+            *(shlex.join(cmd) for cmd in simple_radial_recipe(images, out).values()),
+            shlex.join(["ns-nerfuser-check-capture", str(out)])]  # fmt: skip
 
 
 def run(command: CheckCaptureCommand) -> int:
