@@ -74,6 +74,8 @@ SQUARE_PIXEL_ADVICE = (
     "--skip-colmap: nerfuser_ns's docs/your_own_captures.md), and check again"
 )
 """What to do about a capture whose intrinsics drifted."""
+REPOSED_FOLDER_SUFFIX = "_reposed"
+"""Where ``ns-nerfuser-check-capture`` suggests posing a drifted capture again: beside it, named as it with this."""
 RADIAL_FOLDER_SUFFIX = "_radial"
 """The SIMPLE_RADIAL posing's dataset goes beside the capture's, named as it with this suffix."""
 REPOSE_FOLDER_NAME = "images_to_repose"

@@ -340,6 +340,14 @@ def test_cli_reports_a_drifted_camera_with_what_to_run(room_poses, tmp_path, cap
     lines = {line.split(":")[0]: line for line in out.splitlines() if "not folded" in line}
     assert "fy/fx 1.000 (square pixels)" in lines[str(clean)]
     assert "but its camera drifted (fy/fx 1.200" in lines[str(drifted)]
+    # what to run for this capture, to copy: its images posed again with one focal length beside it, then checked
+    reposed = tmp_path / "east_reposed"
+    commands = [line.strip() for line in out.splitlines() if line.startswith("    ")]
+    pose_again = f"ns-process-data images --data {drifted / 'images'} --output-dir {reposed} --camera-type "
+    pose_again += "simple_pinhole"
+    assert commands == [pose_again, f"ns-nerfuser-check-capture {reposed}"]
+    reposed.mkdir()  # never a folder that exists
+    assert cli.one_focal_lines(drifted)[-1] == f"ns-nerfuser-check-capture {tmp_path / 'east_reposed_2'}"
 
 
 class _TrainedRunWithCamera(_TrainedRun):

@@ -23,6 +23,7 @@ geometry: it is reported with what to run instead.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shlex
@@ -40,6 +41,7 @@ from nerfuser_ns.capture_check import (
     MAX_RIG_CAMERAS,
     RADIAL_FOLDER_SUFFIX,
     REPOSE_FOLDER_NAME,
+    REPOSED_FOLDER_SUFFIX,
     SEQUENCE_STEP_DEG,
     SQUARE_PIXEL_ADVICE,
     IntrinsicsCheck,
@@ -110,7 +112,9 @@ class CheckCaptureCommand:
             if camera_warning is not None:
                 found = True
                 CONSOLE.print(f"[yellow]{camera_warning}[/]")
-                CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}")
+                CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}. For this capture (the images are the dataset's copies):")
+                for line in one_focal_lines(path):
+                    CONSOLE.print(f"    {line}", markup=False, highlight=False)
             # every fold verdict also carries the camera's, so that "not folded" never reads as "fine" and a
             # folded capture's camera is not left unsaid
             camera_verdict = (f"its camera drifted (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
@@ -195,14 +199,30 @@ def _report_matches(path: Path, matches: MatchCheck, camera: IntrinsicsCheck) ->
     return True
 
 
-def radial_recipe_lines(path: Path) -> list[str]:
-    """:data:`ONE_FOCAL_ADVICE`'s recipe for the dataset at ``path`` as shell lines: the images its frames name (the
-    copies ``ns-process-data`` made) posed into a new dataset beside it, named with :data:`RADIAL_FOLDER_SUFFIX`,
-    then checked."""
+def _images_and_folder(path: Path, suffix: str) -> tuple[Path, Path]:
+    """The folder of the images a dataset's frames name (the copies ``ns-process-data`` made) and a new dataset folder
+    beside it, named as it with ``suffix`` (and a number where that folder exists: never one to write over)."""
     file = dataset_file(path)
     frames = json.loads(file.read_text())["frames"]
     images = Path(os.path.commonpath([(file.parent / f["file_path"]).parent for f in frames]))
-    out = file.parent.with_name(file.parent.name + RADIAL_FOLDER_SUFFIX)
+    names = (file.parent.name + suffix + (f"_{i}" if i > 1 else "") for i in itertools.count(1))
+    return images, next(out for name in names if not (out := file.parent.with_name(name)).exists())
+
+
+def one_focal_lines(path: Path) -> list[str]:
+    """:data:`SQUARE_PIXEL_ADVICE` for the dataset at ``path`` as shell lines: its images posed again with one focal
+    length into a new dataset beside it, named with :data:`REPOSED_FOLDER_SUFFIX`, then checked."""
+    images, out = _images_and_folder(path, REPOSED_FOLDER_SUFFIX)
+    return [shlex.join(["ns-process-data", "images", "--data", str(images), "--output-dir", str(out),
+                        "--camera-type", "simple_pinhole"]),
+            shlex.join(["ns-nerfuser-check-capture", str(out)])]  # fmt: skip
+
+
+def radial_recipe_lines(path: Path) -> list[str]:
+    """:data:`ONE_FOCAL_ADVICE`'s recipe for the dataset at ``path`` as shell lines: its images posed by
+    :func:`~nerfuser_ns.capture_check.simple_radial_recipe` into a new dataset beside it, named with
+    :data:`RADIAL_FOLDER_SUFFIX`, then checked."""
+    images, out = _images_and_folder(path, RADIAL_FOLDER_SUFFIX)
     return [shlex.join(["mkdir", "-p", str(out / "colmap" / "sparse")]),
             *(shlex.join(cmd) for cmd in simple_radial_recipe(images, out).values()),
             shlex.join(["ns-nerfuser-check-capture", str(out)])]  # fmt: skip
