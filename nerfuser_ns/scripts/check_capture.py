@@ -112,7 +112,8 @@ class CheckCaptureCommand:
             if camera_warning is not None:
                 found = True
                 CONSOLE.print(f"[yellow]{camera_warning}[/]")
-                CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}. For this capture (the images are the dataset's copies):")
+                CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}. For this capture (the images are the dataset's copies; add "
+                              "the options you posed it with, e.g. --no-gpu, --matching-method):")  # fmt: skip
                 for line in one_focal_lines(path):
                     CONSOLE.print(f"    {line}", markup=False, highlight=False)
             # every fold verdict also carries the camera's, so that "not folded" never reads as "fine" and a
