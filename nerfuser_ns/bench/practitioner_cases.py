@@ -21,7 +21,12 @@ import nerfuser_ns
 from nerfuser_ns import runs, sim3
 from nerfuser_ns.bench.scenes import make_layout
 from nerfuser_ns.blend_choice import ALONG_A_PATH, AROUND_OBJECTS, ON_A_RIG, choose_blend_method
-from nerfuser_ns.capture_check import LARGER_SIDE_NAME, check_dataset_intrinsics
+from nerfuser_ns.capture_check import (
+    LARGER_SIDE_NAME,
+    RADIAL_FOLDER_SUFFIX,
+    REPOSED_FOLDER_SUFFIX,
+    check_dataset_intrinsics,
+)
 from nerfuser_ns.coverage import CameraIndex
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.match_check import check_dataset_matches
@@ -190,14 +195,14 @@ def dataset_transforms(case_dir: Path, capture: str) -> Path:
 def reposed_transforms(case_dir: Path, capture: str) -> Path:
     """A capture posed again without the few views the match check named (``ns-nerfuser-check-capture
     --write-images-to-repose``, then ``ns-process-data``): the checked case's ``check`` stage writes it."""
-    return case_dir / "datasets" / f"{capture}_reposed" / "transforms.json"
+    return case_dir / "datasets" / f"{capture}{REPOSED_FOLDER_SUFFIX}" / "transforms.json"
 
 
 def radial_transforms(case_dir: Path, capture: str) -> Path:
     """A capture posed once more by the user's guide's SIMPLE_RADIAL recipe (COLMAP run by hand with one focal length
     and one radial term, then ``ns-process-data --skip-colmap``), where the check found it folded, posed with one focal
     length and with no side to train on: the checked case's ``check`` stage writes it."""
-    return case_dir / "datasets" / f"{capture}_radial" / "transforms.json"
+    return case_dir / "datasets" / f"{capture}{RADIAL_FOLDER_SUFFIX}" / "transforms.json"
 
 
 SOURCE_FRAMES_NAME = "source_frames.json"

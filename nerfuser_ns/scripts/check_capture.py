@@ -112,10 +112,9 @@ class CheckCaptureCommand:
             if camera_warning is not None:
                 found = True
                 CONSOLE.print(f"[yellow]{camera_warning}[/]")
-                CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}. For this capture (the images are the dataset's copies; add "
-                              "the options you posed it with, e.g. --no-gpu, --matching-method):")  # fmt: skip
-                for line in one_focal_lines(path):
-                    CONSOLE.print(f"    {line}", markup=False, highlight=False)
+                _print_commands(f"{SQUARE_PIXEL_ADVICE}. For this capture (the images are the dataset's copies; "
+                                "add the options you posed it with, e.g. --no-gpu, --matching-method):",
+                                one_focal_lines(path))  # fmt: skip
             # every fold verdict also carries the camera's, so that "not folded" never reads as "fine" and a
             # folded capture's camera is not left unsaid
             camera_verdict = (f"its camera drifted (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
@@ -193,11 +192,17 @@ def _report_matches(path: Path, matches: MatchCheck, camera: IntrinsicsCheck) ->
         return True  # what to do follows (CheckCaptureCommand._repose)
     CONSOLE.print(f"  {POSE_AGAIN_ADVICE}; a run trained on these poses cannot be registered correctly")
     if camera.one_focal_length:
-        CONSOLE.print(f"  {ONE_FOCAL_ADVICE}. For this capture (without CUDA add --SiftExtraction.use_gpu 0 and "
-                      "--SiftMatching.use_gpu 0; the images are the dataset's copies):")  # fmt: skip
-        for line in radial_recipe_lines(path):
-            CONSOLE.print(f"    {line}", markup=False, highlight=False)
+        _print_commands(f"{ONE_FOCAL_ADVICE}. For this capture (without CUDA add --SiftExtraction.use_gpu 0 and "
+                        "--SiftMatching.use_gpu 0; the images are the dataset's copies):",
+                        radial_recipe_lines(path))  # fmt: skip
     return True
+
+
+def _print_commands(advice: str, lines: list[str]) -> None:
+    """An advice line, then the shell lines that follow it, printed as they are (paths may hold rich markup)."""
+    CONSOLE.print(f"  {advice}")
+    for line in lines:
+        CONSOLE.print(f"    {line}", markup=False, highlight=False)
 
 
 def _images_and_folder(path: Path, suffix: str) -> tuple[Path, Path]:
