@@ -272,6 +272,24 @@ def dataset_file(path: Path | str) -> Path:
     return file
 
 
+def process_data_command(
+    images: Path, output_dir: Path, camera_type: str = "perspective", matching_method: str | None = None,
+    use_gpu: bool = True, ns_process_data: str = "ns-process-data", num_downscales: int | None = None,
+    skip_colmap: bool = False,
+) -> list[str]:
+    """``ns-process-data images`` on ``images`` into ``output_dir``, naming only the options that differ from its
+    defaults: ``camera_type`` (its default ``perspective``, COLMAP's OPENCV camera), ``matching_method`` (``None``:
+    its default), ``use_gpu=False`` (``--no-gpu``: CPU SIFT), ``num_downscales`` and ``skip_colmap`` (write the
+    dataset from the COLMAP model already in ``output_dir/colmap/sparse/0``). The one builder of this command, for
+    the check's advice and the benchmark that measures it."""
+    cmd = [ns_process_data, "images", "--data", str(images), "--output-dir", str(output_dir)]
+    cmd += [] if camera_type == "perspective" else ["--camera-type", camera_type]
+    cmd += [] if matching_method is None else ["--matching-method", matching_method]
+    cmd += [] if use_gpu else ["--no-gpu"]
+    cmd += [] if num_downscales is None else ["--num-downscales", str(num_downscales)]
+    return cmd + (["--skip-colmap"] if skip_colmap else [])
+
+
 def simple_radial_recipe(
     images: Path, output_dir: Path, matching_method: str = "exhaustive", use_gpu: bool = True,
     ns_process_data: str = "ns-process-data", num_downscales: int | None = None,
@@ -285,7 +303,6 @@ def simple_radial_recipe(
     database, sparse = output_dir / "colmap" / "database.db", output_dir / "colmap" / "sparse"
     cpu_extraction = [] if use_gpu else ["--SiftExtraction.use_gpu", "0"]
     cpu_matching = [] if use_gpu else ["--SiftMatching.use_gpu", "0"]
-    downscales = [] if num_downscales is None else ["--num-downscales", str(num_downscales)]
     return {
         "features": ["colmap", "feature_extractor", "--database_path", str(database), "--image_path", str(images),
                      "--ImageReader.camera_model", "SIMPLE_RADIAL", "--ImageReader.single_camera", "1",
@@ -293,8 +310,8 @@ def simple_radial_recipe(
         "matches": ["colmap", f"{matching_method}_matcher", "--database_path", str(database), *cpu_matching],
         "mapper": ["colmap", "mapper", "--database_path", str(database), "--image_path", str(images),
                    "--output_path", str(sparse)],
-        "process_data": [ns_process_data, "images", "--data", str(images), "--output-dir", str(output_dir),
-                         "--skip-colmap", *downscales],
+        "process_data": process_data_command(images, output_dir, ns_process_data=ns_process_data,
+                                             num_downscales=num_downscales, skip_colmap=True),
     }  # fmt: skip
 
 

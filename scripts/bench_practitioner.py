@@ -91,6 +91,7 @@ from nerfuser_ns.capture_check import (
     REPOSE_FOLDER_NAME,
     check_dataset,
     check_dataset_intrinsics,
+    process_data_command,
     simple_radial_recipe,
 )
 from nerfuser_ns.files import write_text_atomic
@@ -332,9 +333,8 @@ def stage_colmap(
 
 def _process_data(images: Path, out: Path, matching_method: str, camera_type: str, log: Path) -> float:
     """``ns-process-data images`` (COLMAP, CPU SIFT) on ``images`` into ``out``'s folder; its time."""
-    cmd = [str(BIN / "ns-process-data"), "images", "--data", str(images), "--output-dir", str(out.parent),
-           "--no-gpu", "--matching-method", matching_method, "--num-downscales", "0"]  # fmt: skip
-    cmd += ["--camera-type", camera_type] if camera_type != "perspective" else []
+    cmd = process_data_command(images, out.parent, camera_type, matching_method, use_gpu=False,
+                               ns_process_data=str(BIN / "ns-process-data"), num_downscales=0)  # fmt: skip
     seconds = _run(cmd, log)
     if not out.is_file():
         raise RuntimeError(f"ns-process-data wrote no transforms.json from {images}: COLMAP posed nothing")

@@ -39,7 +39,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     misposed_frames,
     stored_poses,
 )
-from nerfuser_ns.capture_check import check_dataset
+from nerfuser_ns.capture_check import check_dataset, process_data_command
 from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.match_check import check_dataset_matches
 from nerfuser_ns.sim3 import estimate_sim3_from_poses
@@ -101,8 +101,8 @@ def repose(images: Path, order: np.ndarray, out: Path, log: Path) -> float:
     shots.mkdir(parents=True)
     for k, i in enumerate(order):
         shutil.copy2(images / f"view_{i:05d}.png", shots / f"shot_{k:05d}.png")
-    cmd = [str(BIN / "ns-process-data"), "images", "--data", str(shots), "--output-dir", str(out), "--no-gpu",
-           "--matching-method", "sequential", "--num-downscales", "0"]  # fmt: skip
+    cmd = process_data_command(shots, out, matching_method="sequential", use_gpu=False,
+                               ns_process_data=str(BIN / "ns-process-data"), num_downscales=0)  # fmt: skip
     CONSOLE.print(f"[dim]$ {' '.join(cmd)}[/]")
     start = time.perf_counter()
     with open(log, "w") as f:

@@ -48,6 +48,7 @@ from nerfuser_ns.capture_check import (
     check_dataset,
     check_dataset_intrinsics,
     dataset_file,
+    process_data_command,
     simple_radial_recipe,
     write_larger_side,
     write_repose_images,
@@ -219,9 +220,8 @@ def one_focal_lines(path: Path) -> list[str]:
     """:data:`SQUARE_PIXEL_ADVICE` for the dataset at ``path`` as shell lines: its images posed again with one focal
     length into a new dataset beside it, named with :data:`REPOSED_FOLDER_SUFFIX`, then checked."""
     images, out = _images_and_folder(path, REPOSED_FOLDER_SUFFIX)
-    return [shlex.join(["ns-process-data", "images", "--data", str(images), "--output-dir", str(out),
-                        "--camera-type", "simple_pinhole"]),
-            shlex.join(["ns-nerfuser-check-capture", str(out)])]  # fmt: skip
+    return [shlex.join(process_data_command(images, out, "simple_pinhole")),
+            shlex.join(["ns-nerfuser-check-capture", str(out)])]
 
 
 def radial_recipe_lines(path: Path) -> list[str]:

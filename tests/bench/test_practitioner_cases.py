@@ -442,6 +442,33 @@ def test_the_guides_check_poses_a_capture_folded_with_one_focal_length_by_the_si
     assert len(radial) == 1
 
 
+def test_the_benchmark_poses_a_capture_with_ns_process_data_on_cpu_sift(load_script, tmp_path, monkeypatch):
+    """The benchmark's posing: ``ns-process-data images`` with CPU SIFT, the case's matcher, no downscaled copies,
+    and ``--camera-type`` only where it is not the default; an error when nothing was posed."""
+    bench = load_script("bench_practitioner")
+    calls = []
+
+    def run(cmd, log, cwd=None):
+        calls.append(cmd)
+        (Path(cmd[cmd.index("--output-dir") + 1]) / "transforms.json").write_text("{}")
+        return 2.0
+
+    monkeypatch.setattr(bench, "_run", run)
+    out = tmp_path / "capture_0" / "transforms.json"
+    out.parent.mkdir()
+    assert bench._process_data(tmp_path / "images", out, "sequential", "perspective", tmp_path / "c.log") == 2.0
+    assert bench._process_data(tmp_path / "images", out, "exhaustive", "simple_pinhole", tmp_path / "c.log") == 2.0
+    first, second = calls
+    assert Path(first[0]).name == "ns-process-data" and first[first.index("--data") + 1] == str(tmp_path / "images")
+    assert "--no-gpu" in first and first[first.index("--num-downscales") + 1] == "0"
+    assert first[first.index("--matching-method") + 1] == "sequential" and "--camera-type" not in first
+    assert second[second.index("--camera-type") + 1] == "simple_pinhole"
+    monkeypatch.setattr(bench, "_run", lambda cmd, log, cwd=None: 1.0)
+    with pytest.raises(RuntimeError, match="COLMAP posed nothing"):
+        bench._process_data(tmp_path / "images", tmp_path / "other" / "transforms.json", "exhaustive", "perspective",
+                            tmp_path / "c.log")  # fmt: skip
+
+
 def test_the_simple_radial_recipe_runs_the_guides_commands(load_script, tmp_path, monkeypatch):
     """The benchmark's SIMPLE_RADIAL posing is the guide's recipe: COLMAP's feature extractor with one SIMPLE_RADIAL
     camera, the case's matcher and the mapper on CPU SIFT, then ``ns-process-data --skip-colmap`` into the same folder;
