@@ -324,7 +324,12 @@ def test_cli_copies_every_image_but_the_misposed_view_to_pose_again_and_never_ov
     names = sorted(p.name for p in folder.iterdir())
     assert names == [f"frame_{i + 1:05d}.png" for i in range(NUM_VIEWS) if i != 5]
     assert all((folder / n).read_bytes() == (one_misposed / "images" / n).read_bytes() for n in names)
-    assert f"wrote {folder} (11 images, without frame_00006.png)" in out and "ns-process-data images" in out
+    assert f"wrote {folder} (11 images, without frame_00006.png)" in out
+    # what to run next, filled in: those images posed into a new dataset beside the capture, then checked
+    reposed = one_misposed.with_name("one_misposed_reposed")
+    commands = [line.strip() for line in out.splitlines() if line.startswith("    ")]
+    assert commands == [f"ns-process-data images --data {folder} --output-dir {reposed}",
+                        f"ns-nerfuser-check-capture {reposed}"]  # fmt: skip
     assert sorted(p.name for p in one_misposed.iterdir()) == sorted([*before, REPOSE_FOLDER_NAME])
     # a second run names the folder it will not overwrite, in one line, before it checks or writes anything
     other = shutil.copytree(one_misposed, one_misposed.parent / "other", ignore=shutil.ignore_patterns(folder.name))
@@ -332,6 +337,21 @@ def test_cli_copies_every_image_but_the_misposed_view_to_pose_again_and_never_ov
     captured = capsys.readouterr()
     assert f"{folder}: already exists" in captured.err and len(captured.err.strip().splitlines()) == 1
     assert captured.out == "" and not (other / REPOSE_FOLDER_NAME).exists()
+
+
+def test_cli_poses_a_drifted_capture_without_its_misposed_view_in_one_posing(one_misposed, capsys):
+    """A capture with both a few misposed views and a drifted camera gets one posing: the copied images with one
+    focal length; the drift's advice points to it instead of printing a second posing of every image."""
+    file = one_misposed / "transforms.json"
+    meta = json.loads(file.read_text())
+    file.write_text(json.dumps({**meta, "fl_y": 1.2 * meta["fl_x"]}))
+    assert cli.run(cli.CheckCaptureCommand([one_misposed], write_images_to_repose=True)) == 1
+    out = capsys.readouterr().out
+    assert "COLMAP's camera looks drifted" in out and "below, without its misposed views" in out
+    reposed = one_misposed.with_name("one_misposed_reposed")
+    commands = [line.strip() for line in out.splitlines() if line.startswith("    ")]
+    assert commands == [f"ns-process-data images --data {one_misposed / REPOSE_FOLDER_NAME} --output-dir {reposed} "
+                        "--camera-type simple_pinhole", f"ns-nerfuser-check-capture {reposed}"]  # fmt: skip
 
 
 def test_repose_images_refuses_names_not_in_the_images_folder_and_leaves_nothing(one_misposed, tmp_path, monkeypatch):

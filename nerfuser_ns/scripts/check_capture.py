@@ -113,9 +113,12 @@ class CheckCaptureCommand:
             if camera_warning is not None:
                 found = True
                 CONSOLE.print(f"[yellow]{camera_warning}[/]")
-                _print_commands(f"{SQUARE_PIXEL_ADVICE}. For this capture (the images are the dataset's copies; "
-                                "add the options you posed it with, e.g. --no-gpu, --matching-method):",
-                                one_focal_lines(path))  # fmt: skip
+                if path in repose and self.write_images_to_repose:  # one posing for both: the commands below
+                    CONSOLE.print(f"  {SQUARE_PIXEL_ADVICE}: below, without its misposed views")
+                else:
+                    _print_commands(f"{SQUARE_PIXEL_ADVICE}. For this capture (the images are the dataset's copies; "
+                                    "add the options you posed it with, e.g. --no-gpu, --matching-method):",
+                                    one_focal_lines(path))  # fmt: skip
             # every fold verdict also carries the camera's, so that "not folded" never reads as "fine" and a
             # folded capture's camera is not left unsaid
             camera_verdict = (f"its camera drifted (fy/fx {camera.aspect:.3f}, above)" if camera.drifted
@@ -137,7 +140,7 @@ class CheckCaptureCommand:
                 CONSOLE.print(f"  suspect views: {', '.join(Path(s).name for s in check.suspect)}")
                 CONSOLE.print(f"  {camera_verdict}")
             if path in repose:
-                self._repose(path, repose[path])
+                self._repose(path, repose[path], camera.drifted)
             # the file order's sides where it sees the fold, else the matches' (unordered views)
             drop, found_by = (check.suspect, "file order") if check.folded else (matches.smaller_side, "matches")
             if not drop:
@@ -152,16 +155,19 @@ class CheckCaptureCommand:
                               "pose it again and check again")  # fmt: skip
         return 1 if found else 0
 
-    def _repose(self, path: Path, views: tuple[str, ...]) -> None:
-        """Advise posing a capture again without its few misposed views, or copy its other images to do so."""
+    def _repose(self, path: Path, views: tuple[str, ...], drifted: bool) -> None:
+        """Advise posing a capture again without its few misposed views, or copy its other images and print the
+        commands that pose them (with one focal length where its camera ``drifted``)."""
         names = ", ".join(Path(v).name for v in views)
         if not self.write_images_to_repose:
             CONSOLE.print(f"  pose it again without {names} (in every unexplained pair; --write-images-to-repose "
                           "copies the other images) and check again")  # fmt: skip
             return
         out, kept = write_repose_images(path, views, dataset_file(path).parent / REPOSE_FOLDER_NAME)
-        CONSOLE.print(f"  wrote {out} ({kept} images, without {names}): pose them with ns-process-data images "
-                      f"--data {out} --output-dir <a new folder>, check that folder, and train on it")  # fmt: skip
+        how = ", with one focal length (its camera drifted)" if drifted else ""
+        _print_commands(f"wrote {out} ({kept} images, without {names}); pose them again{how}, check the new dataset "
+                        "and train on it (add the options you posed it with, e.g. --no-gpu, --matching-method):",
+                        repose_lines(path, out, drifted))  # fmt: skip
 
 
 def _report_matches(path: Path, matches: MatchCheck, camera: IntrinsicsCheck) -> bool:
@@ -206,29 +212,42 @@ def _print_commands(advice: str, lines: list[str]) -> None:
         CONSOLE.print(f"    {line}", markup=False, highlight=False)
 
 
-def _images_and_folder(path: Path, suffix: str) -> tuple[Path, Path]:
-    """The folder of the images a dataset's frames name (the copies ``ns-process-data`` made) and a new dataset folder
-    beside it, named as it with ``suffix`` (and a number where that folder exists: never one to write over)."""
+def _dataset_images(path: Path) -> Path:
+    """The folder of the images a dataset's frames name (the copies ``ns-process-data`` made)."""
     file = dataset_file(path)
     frames = json.loads(file.read_text())["frames"]
-    images = Path(os.path.commonpath([(file.parent / f["file_path"]).parent for f in frames]))
-    names = (file.parent.name + suffix + (f"_{i}" if i > 1 else "") for i in itertools.count(1))
-    return images, next(out for name in names if not (out := file.parent.with_name(name)).exists())
+    return Path(os.path.commonpath([(file.parent / f["file_path"]).parent for f in frames]))
+
+
+def _new_dataset_folder(path: Path, suffix: str) -> Path:
+    """A new dataset folder beside the dataset at ``path``, named as it with ``suffix`` (and a number where that
+    folder exists: never one to write over)."""
+    folder = dataset_file(path).parent
+    names = (folder.name + suffix + (f"_{i}" if i > 1 else "") for i in itertools.count(1))
+    return next(out for name in names if not (out := folder.with_name(name)).exists())
 
 
 def one_focal_lines(path: Path) -> list[str]:
     """:data:`SQUARE_PIXEL_ADVICE` for the dataset at ``path`` as shell lines: its images posed again with one focal
     length into a new dataset beside it, named with :data:`REPOSED_FOLDER_SUFFIX`, then checked."""
-    images, out = _images_and_folder(path, REPOSED_FOLDER_SUFFIX)
-    return [shlex.join(process_data_command(images, out, "simple_pinhole")),
-            shlex.join(["ns-nerfuser-check-capture", str(out)])]
+    return repose_lines(path, _dataset_images(path), one_focal_length=True)
+
+
+def repose_lines(path: Path, images: Path, one_focal_length: bool) -> list[str]:
+    """``images`` (the dataset's, or those ``--write-images-to-repose`` copied) posed again into a new dataset beside
+    the dataset at ``path``, named with :data:`REPOSED_FOLDER_SUFFIX` (``--camera-type simple_pinhole`` where
+    ``one_focal_length``), then checked, as shell lines."""
+    out = _new_dataset_folder(path, REPOSED_FOLDER_SUFFIX)
+    camera_type = "simple_pinhole" if one_focal_length else "perspective"
+    return [shlex.join(process_data_command(images, out, camera_type)),
+            shlex.join(["ns-nerfuser-check-capture", str(out)])]  # fmt: skip
 
 
 def radial_recipe_lines(path: Path) -> list[str]:
     """:data:`ONE_FOCAL_ADVICE`'s recipe for the dataset at ``path`` as shell lines: its images posed by
     :func:`~nerfuser_ns.capture_check.simple_radial_recipe` into a new dataset beside it, named with
     :data:`RADIAL_FOLDER_SUFFIX`, then checked."""
-    images, out = _images_and_folder(path, RADIAL_FOLDER_SUFFIX)
+    images, out = _dataset_images(path), _new_dataset_folder(path, RADIAL_FOLDER_SUFFIX)
     return [shlex.join(["mkdir", "-p", str(out / "colmap" / "sparse")]),
             *(shlex.join(cmd) for cmd in simple_radial_recipe(images, out).values()),
             shlex.join(["ns-nerfuser-check-capture", str(out)])]  # fmt: skip
