@@ -470,6 +470,13 @@ def test_test_run_scores_the_runs_held_out_images_in_the_common_frame(tmp_path):
     np.testing.assert_allclose(held.cameras.camera_to_worlds.numpy(), every.cameras.camera_to_worlds[pick].numpy(),
                                atol=1e-5)  # fmt: skip
     assert [c[1]["image"].shape for c in dm.fixed_indices_eval_dataloader] == [(6, 8, 3)] * 2
+    # the spec ns-nerfuser-register --fusion-spec writes: no runs (the registration file's), the run by its name
+    name = read_registered_nerfs(tmp_path / "registration.json")[1].name
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps({"registration": "registration.json", "test_run": name}))
+    same = fdata.NerfuserDataManagerConfig(data=bare).setup(device="cpu", test_mode="test").eval_dataset
+    assert [p.name for p in same.image_filenames] == held_names
+    np.testing.assert_allclose(same.cameras.camera_to_worlds.numpy(), held.cameras.camera_to_worlds.numpy())
 
 
 def test_a_test_run_whose_dataset_is_gone_is_one_line_before_ns_train_writes(tmp_path):

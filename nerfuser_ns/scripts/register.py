@@ -12,6 +12,7 @@ no output (a solution the checks refused is kept, marked, in the work folder for
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 from collections.abc import Callable
@@ -24,6 +25,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
+from nerfuser_ns.files import write_text_atomic
 from nerfuser_ns.registration import (
     RegistrationConfig,
     RegistrationError,
@@ -50,6 +52,10 @@ class RegisterCommand(RegistrationConfig):
     """config.yml of each run (at least 2), as ns-train wrote it."""
     output: Path = Path("registration.json")
     """Registration file to write (JSON, written atomically)."""
+    fusion_spec: Path | None = None
+    """Also write a fusion spec here (e.g. fusion.json) for ns-train nerfuser and ns-eval: the registration file, and
+    the reference run's held-out images as the test images ("test_run"; left out where --data moved a dataset, whose
+    held-out images the spec cannot find). A file already there is replaced only where it holds the same."""
     work_dir: Path | None = None
     """Folder for renders and SfM files, reused by later runs with the same inputs (default: <output stem>_work)."""
     data: list[Path] = field(default_factory=list)
@@ -79,6 +85,8 @@ class RegisterCommand(RegistrationConfig):
             ]  # fmt: skip
         work_dir = self.work_dir or work_dir_for(self.output)
         self._check_outputs(work_dir, renderers)
+        reference = renderers[self.reference % len(renderers)].name  # an index out of range fails in register()
+        spec_text = None if self.fusion_spec is None else self._spec_text(reference)
         config = RegistrationConfig(**{f: getattr(self, f) for f in RegistrationConfig.__dataclass_fields__})
         try:
             result = register(renderers, config, work_dir, console=CONSOLE)
@@ -95,13 +103,42 @@ class RegisterCommand(RegistrationConfig):
             CONSOLE.print(f"[bold yellow]warning: implausible scale to the reference for {', '.join(odd)} (outside "
                           "1e-3..1e3): check that these runs show the same place[/]")  # fmt: skip
         CONSOLE.print(f"[bold green]wrote[/] {self.output}")
+        if spec_text is not None:
+            write_text_atomic(self.fusion_spec, spec_text)
+            CONSOLE.print(f"[bold green]wrote[/] {self.fusion_spec}")
         tip = camera_optimizer_tip(renderers)
         if tip is not None:
             CONSOLE.print(tip, style="dim", soft_wrap=True, highlight=False, markup=False)
-        CONSOLE.print(f"next: ns-train nerfuser --data {self.output} (then ns-viewer); to score the blend with "
-                      "ns-eval, a fusion.json naming the runs, this file as \"registration\" and \"test_run\": 0 "
-                      "(the first run's held-out images)", soft_wrap=True, highlight=False, markup=False)  # fmt: skip
+        if self.fusion_spec is not None:
+            scored = "ns-eval scores the blend" if self.data == [] else "add test images to score it with ns-eval"
+            CONSOLE.print(f"next: ns-train nerfuser --data {self.fusion_spec} (then ns-viewer; {scored})",
+                          soft_wrap=True, highlight=False, markup=False)  # fmt: skip
+        else:
+            CONSOLE.print(f"next: ns-train nerfuser --data {self.output} (then ns-viewer); to score the blend with "
+                          "ns-eval, --fusion-spec fusion.json writes a spec whose test images are the reference run's "
+                          "held-out ones", soft_wrap=True, highlight=False, markup=False)  # fmt: skip
         return record
+
+    def _spec_text(self, reference_name: str) -> str:
+        """The fusion spec ``--fusion-spec`` writes, checked before any rendering: its path is a file that does not
+        exist or already holds the same spec (never a user's own spec replaced), in a writable folder."""
+        spec = self.fusion_spec.absolute()
+        data: dict = {"registration": os.path.relpath(self.output.absolute(), spec.parent)}
+        if not self.data:  # the held-out images are read from the dataset the run's config.yml records
+            data["test_run"] = reference_name
+        text = json.dumps(data, indent=2) + "\n"
+        if spec == self.output.absolute():
+            raise RegistrationError(f"--fusion-spec {self.fusion_spec} is the registration file; pass another path")
+        if spec.is_dir():
+            raise RegistrationError(f"--fusion-spec {self.fusion_spec} is a folder; pass a file path (fusion.json)")
+        if spec.exists() and spec.read_text() != text:
+            raise RegistrationError(f"--fusion-spec {self.fusion_spec} exists and holds another spec; pass another "
+                                    "path or remove it")  # fmt: skip
+        parent = next((q for q in spec.parents if q.exists()), None)
+        if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            raise RegistrationError(f"--fusion-spec {self.fusion_spec}: {parent} is not a writable folder; pass "
+                                    "another path")  # fmt: skip
+        return text
 
     def _check_outputs(self, work_dir: Path, renderers) -> None:
         """Before any rendering: the output is a writable file path that is not an input nor inside a run folder."""

@@ -110,6 +110,32 @@ def test_cli_success_writes_the_file_and_prints_a_summary(oc_layout, oc_renderer
         ScoreCommand(out, gt_transforms=gt, output=out).main(console)
 
 
+def test_cli_writes_a_fusion_spec_beside_and_never_over_another(oc_renderers, work, tmp_path, capsys):
+    """--fusion-spec: the spec ns-train nerfuser and ns-eval take (the registration file, relative to the spec, and
+    the reference run's held-out images); a spec already there is replaced only where it is the same, checked before
+    anything is rendered; the registration file itself is refused as the spec."""
+    spec = tmp_path / "specs" / "fusion.json"
+    rc, out, _ = run_cli(tmp_path, oc_renderers, None, work_dir=work, fusion_spec=spec)
+    printed = capsys.readouterr()
+    assert rc == 0, printed.err
+    assert json.loads(spec.read_text()) == {"registration": "../registration.json", "test_run": "capture_a"}
+    assert f"next: ns-train nerfuser --data {spec}" in printed.out
+    rc, out, err = run_cli(tmp_path, oc_renderers, capsys, work_dir=work, fusion_spec=spec)  # the same spec again
+    assert rc == 0, err
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "fusion.json").write_text('{"registration": "../registration.json", "test_data": "test"}\n')
+    rc, out, err = run_cli(mine, oc_renderers, capsys, work_dir=work, fusion_spec=mine / "fusion.json")
+    assert_one_line_error(rc, out, err, "exists and holds another spec")
+    assert json.loads((mine / "fusion.json").read_text())["test_data"] == "test"  # the user's spec untouched
+    rc, out, err = run_cli(mine, oc_renderers, capsys, work_dir=work, fusion_spec=mine / "registration.json")
+    assert_one_line_error(rc, out, err, "is the registration file")
+    # datasets moved (--data): the held-out images cannot be found through the runs' configs, so no test_run
+    moved = cli.RegisterCommand(output=tmp_path / "registration.json", fusion_spec=tmp_path / "fusion.json",
+                                data=[tmp_path / "a", tmp_path / "b"])  # fmt: skip
+    assert json.loads(moved._spec_text("capture_a")) == {"registration": "registration.json"}
+
+
 def test_rerun_reuses_renders_and_sfm(oc_layout, oc_renderers, oc_record, work):
     rec = score_registration(reg.register(oc_renderers, small_config(), work), gt_of(oc_layout))
     assert all(n["renders_reused"] for n in rec["nerfs"]) and rec["sfm"]["reused"]
