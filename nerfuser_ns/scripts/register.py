@@ -110,7 +110,7 @@ class RegisterCommand(RegistrationConfig):
         if tip is not None:
             CONSOLE.print(tip, style="dim", soft_wrap=True, highlight=False, markup=False)
         if self.fusion_spec is not None:
-            scored = "ns-eval scores the blend" if self.data == [] else "add test images to score it with ns-eval"
+            scored = "ns-eval scores the blend" if not self.data else "add test images to score it with ns-eval"
             CONSOLE.print(f"next: ns-train nerfuser --data {self.fusion_spec} (then ns-viewer; {scored})",
                           soft_wrap=True, highlight=False, markup=False)  # fmt: skip
         else:
