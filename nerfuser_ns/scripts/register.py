@@ -85,8 +85,9 @@ class RegisterCommand(RegistrationConfig):
             ]  # fmt: skip
         work_dir = self.work_dir or work_dir_for(self.output)
         self._check_outputs(work_dir, renderers)
-        reference = renderers[self.reference % len(renderers)].name  # an index out of range fails in register()
-        spec_text = None if self.fusion_spec is None else self._spec_text(reference)
+        spec_text = None
+        if self.fusion_spec is not None:  # an index out of range fails in register(), before the spec is written
+            spec_text = self._spec_text(renderers[self.reference % len(renderers)].name)
         config = RegistrationConfig(**{f: getattr(self, f) for f in RegistrationConfig.__dataclass_fields__})
         try:
             result = register(renderers, config, work_dir, console=CONSOLE)
