@@ -122,7 +122,8 @@ class RegisterCommand(RegistrationConfig):
 
     def _spec_text(self, reference_name: str) -> str:
         """The fusion spec ``--fusion-spec`` writes, checked before any rendering: its path is a file that does not
-        exist or already holds the same spec (never a user's own spec replaced), in a writable folder."""
+        exist or already holds the same spec (never a user's own spec replaced); its folder is checked writable with
+        the other outputs (:meth:`_check_outputs`)."""
         spec = self.fusion_spec.absolute()
         data: dict = {"registration": os.path.relpath(self.output.absolute(), spec.parent)}
         if not self.data:  # the held-out images are read from the dataset the run's config.yml records
@@ -135,14 +136,11 @@ class RegisterCommand(RegistrationConfig):
         if spec.exists() and spec.read_text() != text:
             raise RegistrationError(f"--fusion-spec {self.fusion_spec} exists and holds another spec; pass another "
                                     "path or remove it")  # fmt: skip
-        parent = next((q for q in spec.parents if q.exists()), None)
-        if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-            raise RegistrationError(f"--fusion-spec {self.fusion_spec}: {parent} is not a writable folder; pass "
-                                    "another path")  # fmt: skip
         return text
 
     def _check_outputs(self, work_dir: Path, renderers) -> None:
-        """Before any rendering: the output is a writable file path that is not an input nor inside a run folder."""
+        """Before any rendering: the output is a writable file path that is not an input nor inside a run folder; the
+        work folder and the fusion spec's folder are writable."""
         output = self.output.absolute()
         for r in renderers:
             config_path = getattr(r, "config_path", None)
@@ -155,7 +153,10 @@ class RegisterCommand(RegistrationConfig):
                 )
         if output.is_dir():
             raise RegistrationError(f"--output {self.output} is a folder; pass a file path (e.g. registration.json)")
-        for path, what in ((output, "--output"), (Path(work_dir).absolute() / "x", "--work-dir")):
+        paths = [(output, "--output"), (Path(work_dir).absolute() / "x", "--work-dir")]
+        if self.fusion_spec is not None:
+            paths.append((self.fusion_spec.absolute(), "--fusion-spec"))
+        for path, what in paths:
             parent = next((q for q in path.parents if q.exists()), None)
             if parent is None or not parent.is_dir():
                 raise RegistrationError(f"{what} {path.parent}: {parent} is not a folder; pass another path")
