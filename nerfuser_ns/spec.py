@@ -455,11 +455,26 @@ def write_fusion_spec(
 ) -> Path:
     """Writes a fusion spec JSON (paths stored as given), atomically."""
     path = Path(path)
-    if names is not None:
-        runs_value: list[Any] = [{"name": n, "config": str(r)} for n, r in zip(names, runs, strict=True)]
-    else:
-        runs_value = [str(r) for r in runs]
-    data: dict[str, Any] = {"runs": runs_value}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = fusion_spec_text(runs, registration, test_data, test_to_common, names, test_run)
+    return write_text_atomic(path, text)
+
+
+def fusion_spec_text(
+    runs: list[Path | str] | None = None,
+    registration: Path | str | None = None,
+    test_data: Path | str | None = None,
+    test_to_common: np.ndarray | None = None,
+    names: list[str] | None = None,
+    test_run: str | int | None = None,
+) -> str:
+    """A fusion spec's JSON text (paths stored as given; no ``runs`` key where ``runs`` is None: the registration
+    file's runs)."""
+    data: dict[str, Any] = {}
+    if runs is not None and names is not None:
+        data["runs"] = [{"name": n, "config": str(r)} for n, r in zip(names, runs, strict=True)]
+    elif runs is not None:
+        data["runs"] = [str(r) for r in runs]
     if registration is not None:
         data["registration"] = str(registration)
     if test_data is not None:
@@ -468,5 +483,4 @@ def write_fusion_spec(
         data["test_to_common"] = np.asarray(test_to_common, dtype=np.float64).tolist()
     if test_run is not None:
         data["test_run"] = test_run
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
+    return json.dumps(data, indent=2) + "\n"

@@ -12,7 +12,6 @@ no output (a solution the checks refused is kept, marked, in the work folder for
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 from collections.abc import Callable
@@ -38,6 +37,7 @@ from nerfuser_ns.registration import (
 from nerfuser_ns.renderers import NerfstudioRenderer
 from nerfuser_ns.runs import RunLoadError, check_dataset_folder, check_device, default_device, run_names
 from nerfuser_ns.scripts.cli import parse
+from nerfuser_ns.spec import fusion_spec_text
 
 CONSOLE = Console(width=120)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
@@ -125,10 +125,9 @@ class RegisterCommand(RegistrationConfig):
         exist or already holds the same spec (never a user's own spec replaced); its folder is checked writable with
         the other outputs (:meth:`_check_outputs`)."""
         spec = self.fusion_spec.absolute()
-        data: dict = {"registration": os.path.relpath(self.output.absolute(), spec.parent)}
-        if not self.data:  # the held-out images are read from the dataset the run's config.yml records
-            data["test_run"] = reference_name
-        text = json.dumps(data, indent=2) + "\n"
+        # no test_run where --data moved a dataset: the held-out images are read where the run's config.yml says
+        text = fusion_spec_text(registration=os.path.relpath(self.output.absolute(), spec.parent),
+                                test_run=None if self.data else reference_name)  # fmt: skip
         if spec == self.output.absolute():
             raise RegistrationError(f"--fusion-spec {self.fusion_spec} is the registration file; pass another path")
         if spec.is_dir():
