@@ -68,6 +68,7 @@ from nerfuser_ns.bench.practitioner_cases import (
     held_out_evals,
     held_out_fused_config,
     images_done,
+    last_posing,
     library_commit,
     radial_transforms,
     register_command,
@@ -404,7 +405,7 @@ def stage_radial(layout, case_dir: Path, matching_method: str = "exhaustive") ->
         dataset = dataset_transforms(case_dir, cap.name)
         if "radial" in found or not _stuck(_last_check(found)):
             continue
-        last = dataset if again is None else reposed_transforms(case_dir, cap.name)
+        last = last_posing(case_dir, cap.name)  # the radial posing itself where an interrupted run wrote it
         if not check_dataset_intrinsics(last).one_focal_length:  # the check's advice is for one focal length
             continue
         without_views = again is not None and again.get("without_views", True)

@@ -210,13 +210,18 @@ SOURCE_FRAMES_NAME = "source_frames.json"
 numbers its inputs afresh, and a view left out shifts the numbers after it)."""
 
 
-def training_transforms(case_dir: Path, capture: str) -> Path:
-    """The transforms file a capture's run trains on: the last posing the check's advice led to (the SIMPLE_RADIAL
+def last_posing(case_dir: Path, capture: str) -> Path:
+    """The transforms file of a capture's last posing: the one the check's advice last led to (the SIMPLE_RADIAL
     recipe's, :func:`radial_transforms`, else the capture posed again, :func:`reposed_transforms`), else the COLMAP
-    dataset; of that, the larger side of a folded capture where ``ns-nerfuser-check-capture --write-larger-side``
-    wrote one."""
+    dataset."""
     posings = (radial_transforms(case_dir, capture), reposed_transforms(case_dir, capture))
-    dataset = next((p for p in posings if p.is_file()), dataset_transforms(case_dir, capture))
+    return next((p for p in posings if p.is_file()), dataset_transforms(case_dir, capture))
+
+
+def training_transforms(case_dir: Path, capture: str) -> Path:
+    """The transforms file a capture's run trains on: its :func:`last_posing`, or that posing's larger side where the
+    capture is folded and ``ns-nerfuser-check-capture --write-larger-side`` wrote one."""
+    dataset = last_posing(case_dir, capture)
     larger = dataset.with_name(LARGER_SIDE_NAME)
     return larger if larger.is_file() else dataset
 
