@@ -133,6 +133,14 @@ class MatchCheck:
                 "to contradict them, so this check vouches only for the pairs compared (on a generated street "
                 "posed by sequential matching it passed a capture with 25 of 52 views misposed)")  # fmt: skip
 
+    def view_shares(self) -> dict[str, float]:
+        """Per view in an unexplained pair, the share of its judged pairs that are unexplained: a view posed wrong
+        contradicts most views it matches, a view posed right only the misposed ones among them (or the few it shares
+        wrong matches with)."""
+        unexplained = Counter(name for pair in self.unexplained for name in pair)
+        judged = unexplained + Counter(name for pair in self.explained for name in pair)
+        return {name: count / judged[name] for name, count in unexplained.items()}
+
     def views(self) -> list[tuple[str, int]]:
         """Image names by how many unexplained pairs they are in, most first: where to look."""
         counts = Counter(name for pair in self.unexplained for name in pair)
@@ -156,11 +164,11 @@ class MatchCheck:
         if not self.folded or self.smaller_side is not None:
             return None
         cover = pair_cover(self.unexplained)
-        unexplained = Counter(name for pair in self.unexplained for name in pair)
-        judged = unexplained + Counter(name for pair in self.explained for name in pair)
+        judged = {name for pair in [*self.unexplained, *self.explained] for name in pair}
         if len(cover) > MAX_REPOSE_SHARE * len(judged):
             return None
-        if any(unexplained[name] < MIN_VIEW_UNEXPLAINED_SHARE * judged[name] for name in cover):
+        shares = self.view_shares()
+        if any(shares[name] < MIN_VIEW_UNEXPLAINED_SHARE for name in cover):
             return None
         return tuple(sorted(cover))
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 import tyro
 
 from nerfuser_ns.bench.practitioner_cases import case_layout, dataset_transforms, frame_index, misposed_frames
@@ -35,9 +36,13 @@ from nerfuser_ns.match_check import (
     MAX_UNEXPLAINED_SHARE,
     MIN_CROSS_UNEXPLAINED_SHARE,
     MIN_INLIERS,
+    MIN_VIEW_UNEXPLAINED_SHARE,
     SAMPSON_PX,
     check_dataset_matches,
 )
+
+NEAR_TURN_DEG = 60.0
+"""Pairs whose views COLMAP posed at most this far apart in rotation are counted apart (a column of the table)."""
 
 
 @dataclass
@@ -81,6 +86,15 @@ def larger_side_misposed(case_dir: Path, capture: str, smaller: tuple[str, ...])
     return int(misposed_frames(poses, true).sum())
 
 
+def near_pairs(dataset: Path, pairs: list[tuple[str, str]]) -> list[bool]:
+    """Per pair of image names, whether the dataset's COLMAP model posed its two views at most :data:`NEAR_TURN_DEG`
+    apart in rotation."""
+    model = pycolmap.Reconstruction(str(dataset / "colmap" / "sparse" / "0"))
+    rotation = {image.name: np.asarray(image.cam_from_world().rotation.matrix()) for image in model.images.values()}
+    cos = [(np.trace(rotation[b] @ rotation[a].T) - 1) / 2 for a, b in pairs]
+    return [bool(np.degrees(np.arccos(np.clip(c, -1, 1))) <= NEAR_TURN_DEG) for c in cos]
+
+
 def main(cfg: MatchCheckCaptures) -> None:
     truth = misposed_by_capture(cfg.records)
     rows = []
@@ -92,11 +106,15 @@ def main(cfg: MatchCheckCaptures) -> None:
             order = check_dataset(dataset)
             misposed = truth.get((case.name, dataset.name))
             smaller = matches.smaller_side
+            near = near_pairs(dataset, [*matches.unexplained, *matches.explained]) if matches.checked else []
+            near_unexplained = sum(near[: len(matches.unexplained)])
             side = None if smaller is None else {
                 "smaller": len(smaller), "larger_misposed": larger_side_misposed(case, dataset.name, smaller)}
             rows.append({"case": case.name, "capture": dataset.name, "misposed_views": misposed, "sides": side,
                          "pairs": matches.pairs, "unexplained": len(matches.unexplained),
                          "share": matches.unexplained_share, "match_check_folded": matches.folded,
+                         "top_view_share": max(matches.view_shares().values(), default=0.0),
+                         "near_pairs": sum(near), "near_unexplained": near_unexplained,
                          "order_check": ("folded" if order.folded else "not folded") if order.checked
                          else "not checked", "seconds": round(seconds, 2)})  # fmt: skip
             print(f"{case.name}/{dataset.name}: {len(matches.unexplained)} of {matches.pairs} pairs unexplained")
@@ -115,15 +133,21 @@ def main(cfg: MatchCheckCaptures) -> None:
              f"(each consistent alone, at most {MAX_CROSS_SHARE:.0%} of the pairs across, at least "
              f"{MIN_CROSS_UNEXPLAINED_SHARE:.0%} of those unexplained; set on the captures of this table, not on a "
              "fresh one), the smaller side's views, and the larger side's views more than 5 deg off the tie "
-             "fitted to that side (the truth: 0 is a consistent capture to train on); '-' where it found none.", "",
+             "fitted to that side (the truth: 0 is a consistent capture to train on); '-' where it found none. "
+             "*Most contradicted view*: the largest share of one view's judged pairs that are unexplained (a view "
+             f"COLMAP misposed contradicts most views it matches; {MIN_VIEW_UNEXPLAINED_SHARE:.0%} is the bar for "
+             f"naming views to pose again without). *Near pairs*: unexplained of the judged pairs whose views COLMAP "
+             f"posed at most {NEAR_TURN_DEG:g} deg apart in rotation.", "",
              "| case | capture | misposed views (truth) | verified pairs judged | unexplained | share | match check | "
-             "sides: smaller (larger side misposed) | order check | time (s) |",
-             "| --- | --- | ---: | ---: | ---: | ---: | --- | --- | --- | ---: |"]  # fmt: skip
+             "sides: smaller (larger side misposed) | most contradicted view | near pairs: unexplained | order check "
+             "| time (s) |",
+             "| --- | --- | ---: | ---: | ---: | ---: | --- | --- | ---: | ---: | --- | ---: |"]  # fmt: skip
     for r in rows:
         truth_cell = "-" if r["misposed_views"] is None else str(r["misposed_views"])
         lines.append(f"| {r['case']} | {r['capture']} | {truth_cell} | {r['pairs']} | {r['unexplained']} | "
                      f"{100 * r['share']:.1f}% | {'folded' if r['match_check_folded'] else 'consistent'} | "
-                     f"{_sides_cell(r['sides'])} | {r['order_check']} | {r['seconds']:.2f} |")  # fmt: skip
+                     f"{_sides_cell(r['sides'])} | {100 * r['top_view_share']:.0f}% | {r['near_unexplained']} of "
+                     f"{r['near_pairs']} | {r['order_check']} | {r['seconds']:.2f} |")  # fmt: skip
     lines += ["", f"Against the truth: {right} of {len(judged)} captures with a record judged right ({folded} folded, "
               f"{len(judged) - folded} consistent)."]  # fmt: skip
     write_text_atomic(cfg.output, "\n".join(lines) + "\n")

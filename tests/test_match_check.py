@@ -311,6 +311,14 @@ def test_a_view_that_contradicts_few_of_its_matches_is_not_named_misposed():
         assert check.repose_without == (("v00",) if share >= MIN_VIEW_UNEXPLAINED_SHARE else None), lost
 
 
+def test_view_shares_count_each_views_own_judged_pairs():
+    unexplained = [("a", "b"), ("a", "c")]
+    explained = [("a", "d"), ("b", "c"), ("b", "d"), ("c", "d")]
+    shares = MatchCheck(checked=True, pairs=6, unexplained=unexplained, explained=explained).view_shares()
+    assert shares == {"a": 2 / 3, "b": 1 / 3, "c": 1 / 3}  # d is in no unexplained pair
+    assert MatchCheck(checked=True, pairs=1, explained=[("a", "b")]).view_shares() == {}
+
+
 def test_cli_copies_every_image_but_the_misposed_view_to_pose_again_and_never_overwrites(one_misposed, capsys):
     assert cli.run(cli.CheckCaptureCommand([one_misposed])) == 1
     out = capsys.readouterr().out
