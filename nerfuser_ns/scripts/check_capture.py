@@ -59,14 +59,16 @@ from nerfuser_ns.scripts.cli import parse
 CONSOLE = Console(soft_wrap=True)
 ERR_CONSOLE = Console(stderr=True, soft_wrap=True)
 POSE_AGAIN_ADVICE = (
-    "pose the capture again and check again. Sequential matching (ns-process-data --matching-method sequential, its "
-    "files in the order they were taken) is no sure remedy: on our generated captures it cut one folded room's "
-    "misposed views from 27 to 1 but barely two others', and left a street folded in a way this check then could not "
-    "see (it compares few pairs). Where no view holds something unique to its part of the place, film it again with "
-    "such views"
+    "pose the capture again and check again (COLMAP's mapping does not repeat itself: run again, the same command "
+    "posed one of our folded drive captures consistently, though not our folded rooms). Sequential matching "
+    "(ns-process-data --matching-method sequential, its files in the order they were taken) is no sure remedy: on "
+    "our generated captures it cut one folded room's misposed views from 27 to 1 but barely two others', and left a "
+    "street folded in a way this check then could not see (it compares few pairs). Where no view holds something "
+    "unique to its part of the place, film it again with such views"
 )
 """What is left for a capture the matches show folded with no side to train on and no few views to leave out, with
-what posing again did on our captures (``reports/colmap_fold_check.md``, ``reports/repose_in_order_street20.md``)."""
+what posing again did on our captures (``reports/colmap_fold_check.md``, ``reports/repose_in_order_street20.md``,
+``reports/colmap_quality_drive17_simple_pinhole_again.md``)."""
 ONE_FOCAL_ADVICE = (
     "It was posed with one focal length (fy = fx); COLMAP's SIMPLE_RADIAL camera is another posing to try (the recipe "
     "in nerfuser_ns's docs/your_own_captures.md): on two of our drives a capture posed again with ns-process-data's "
