@@ -872,9 +872,11 @@ def _posed_cell(c: dict) -> str:
     return cell + (f" ({'; '.join(extra)})" if extra else "")
 
 
-def _capture_check_cell(c: dict) -> str:
+def _capture_check_cell(c: dict, stopped: bool = False) -> str:
     """What ``ns-nerfuser-check-capture --write-larger-side`` found for one capture (``capture_check.json``; records
-    before the match check was recorded there carry the file order's verdict alone), and how it was posed again."""
+    before the match check was recorded there carry the file order's verdict alone), and how it was posed again;
+    ``stopped``: the case stopped before training (:func:`stopped_record`), as it does since the path stops at a fold
+    it cannot remedy (earlier records trained on every view of such a capture)."""
     camera = c.get("camera")  # records of before the camera was recorded here: not said
     drift = ("" if camera is None else f"; camera drifted (fy/fx {camera['aspect']:.3f})" if camera["drifted"]
              else f"; camera fy/fx {camera['aspect']:.3f}")  # fmt: skip
@@ -895,7 +897,8 @@ def _capture_check_cell(c: dict) -> str:
     if matches.get("repose_without") and reposed:
         verdict = f"; the match check named {', '.join(matches['repose_without'])} in every unexplained pair"
     elif matches["folded"]:
-        verdict = "; folded by the match check, no sides" + ("" if reposed else " to train on: trained on every view")
+        trained = "the guide's path stops here" if stopped else "trained on every view"
+        verdict = "; folded by the match check, no sides" + ("" if reposed else f" to train on: {trained}")
     else:
         verdict = "; the match check found it consistent"
     return order + verdict + drift + _reposed_cell(c)
@@ -969,7 +972,8 @@ def write_report(records: list[dict], path: Path, cfg: BenchPractitioner) -> Non
             for c, src, m, k in shared) + ".", ""]
     for r in records:
         if r.get("capture_check"):
-            parts = [f"{cap}: {_capture_check_cell(c)}" for cap, c in r["capture_check"].items()]
+            stopped = bool(r["registration"].get("stopped"))
+            parts = [f"{cap}: {_capture_check_cell(c, stopped)}" for cap, c in r["capture_check"].items()]
             repose = " --write-images-to-repose" if any("reposed" in c for c in r["capture_check"].values()) else ""
             lines += [f"Capture check of {r['case']} (`ns-nerfuser-check-capture --write-larger-side{repose}` before "
                       f"training): {'; '.join(parts)}.", ""]  # fmt: skip

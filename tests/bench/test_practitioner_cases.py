@@ -306,6 +306,8 @@ def test_the_capture_check_line_says_which_check_found_the_fold(load_script):
     folded = {"checked": True, "folded": True}
     assert bench._capture_check_cell({**unordered, "matches": folded, "larger_side": None}).endswith(
         "folded by the match check, no sides to train on: trained on every view")
+    assert bench._capture_check_cell({**unordered, "matches": folded, "larger_side": None}, stopped=True).endswith(
+        "folded by the match check, no sides to train on: the guide's path stops here")
     consistent = {"checked": True, "folded": False}
     assert bench._capture_check_cell({**unordered, "matches": consistent}) == (
         "not checked by file order (no sequence); the match check found it consistent")
