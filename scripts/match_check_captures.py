@@ -40,6 +40,7 @@ from nerfuser_ns.match_check import (
     SAMPSON_PX,
     check_dataset_matches,
 )
+from nerfuser_ns.sim3 import rotation_angle_deg
 
 NEAR_TURN_DEG = 60.0
 """Pairs whose views COLMAP posed at most this far apart in rotation are counted apart (a column of the table)."""
@@ -91,8 +92,10 @@ def near_pairs(dataset: Path, pairs: list[tuple[str, str]]) -> list[bool]:
     apart in rotation."""
     model = pycolmap.Reconstruction(str(dataset / "colmap" / "sparse" / "0"))
     rotation = {image.name: np.asarray(image.cam_from_world().rotation.matrix()) for image in model.images.values()}
-    cos = [(np.trace(rotation[b] @ rotation[a].T) - 1) / 2 for a, b in pairs]
-    return [bool(np.degrees(np.arccos(np.clip(c, -1, 1))) <= NEAR_TURN_DEG) for c in cos]
+    if not pairs:
+        return []
+    turns = rotation_angle_deg(np.stack([rotation[b] @ rotation[a].T for a, b in pairs]))
+    return [bool(t <= NEAR_TURN_DEG) for t in turns]
 
 
 def main(cfg: MatchCheckCaptures) -> None:
